@@ -1,0 +1,101 @@
+"""Baseline controllers by env id, user-supplied baselines, and a CLI that measures them.
+
+A baseline is any callable ``baseline(obs) -> action`` in the env's action units. It may return
+``None`` to mean "no intervention" (JIRL's intervention mode). If it has a ``reset()`` method, the
+scripts call it at the start of every episode, so a stateful controller (a PD law with a
+derivative filter, say) starts clean.
+
+    python -m envs.baselines --env-id LunarLanderContinuous-v3 --episodes 20
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+from typing import Callable, Optional
+
+import numpy as np
+
+from envs.lunar_lander import lunar_lander_expert, lunar_lander_slow_descent
+from envs.make import make_env
+from envs.pendulum import pendulum_swing_up
+
+Baseline = Callable[[np.ndarray], Optional[np.ndarray]]
+
+BASELINES: dict[str, Baseline] = {
+    "Pendulum-v1": pendulum_swing_up,
+    "LunarLanderContinuous-v3": lunar_lander_slow_descent,
+}
+# Strong controllers, for tests and imitation checks; not baselines to beat.
+EXPERTS: dict[str, Baseline] = {
+    "LunarLanderContinuous-v3": lunar_lander_expert,
+}
+
+
+def load_baseline(spec: str) -> Baseline:
+    """Import ``module:attribute``; a class is instantiated with no arguments."""
+    module_name, sep, attribute = spec.partition(":")
+    if not sep or not module_name or not attribute:
+        raise ValueError(f"baseline {spec!r} must look like 'module:function'")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as err:
+        raise ValueError(f"cannot import baseline module {module_name!r}: {err}") from None
+    try:
+        baseline = getattr(module, attribute)
+    except AttributeError:
+        raise ValueError(f"module {module_name!r} has no attribute {attribute!r}") from None
+    if isinstance(baseline, type):
+        baseline = baseline()
+    if not callable(baseline):
+        raise ValueError(f"baseline {spec!r} is not callable")
+    return baseline
+
+
+def get_baseline(env_id: str, spec: str = "") -> Baseline:
+    """The baseline named by ``spec`` ('module:function'), else the project's one for ``env_id``."""
+    if spec:
+        return load_baseline(spec)
+    if env_id not in BASELINES:
+        known = ", ".join(sorted(BASELINES))
+        raise ValueError(f"no baseline for {env_id!r} (known: {known}); pass --baseline module:function")
+    return BASELINES[env_id]
+
+
+def rollout(env, policy: Baseline, seed: int) -> np.ndarray:
+    """Run one episode from ``env.reset(seed=seed)``; return the reward of every step."""
+    if hasattr(policy, "reset"):
+        policy.reset()
+    obs, _ = env.reset(seed=seed)
+    rewards = []
+    while True:
+        action = policy(obs)
+        obs, reward, terminated, truncated, _ = env.step(action)
+        rewards.append(float(reward))
+        if terminated or truncated:
+            return np.asarray(rewards)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description="Measure a baseline controller.")
+    parser.add_argument("--env-id", default="Pendulum-v1")
+    parser.add_argument("--baseline", default="", help="module:function; default: the env's own")
+    parser.add_argument("--episodes", type=int, default=20)
+    parser.add_argument("--seed", type=int, default=0, help="episode i is reset with seed + i")
+    args = parser.parse_args(argv)
+    try:
+        env = make_env(args.env_id)
+        baseline = get_baseline(args.env_id, args.baseline)
+    except ValueError as err:
+        parser.exit(2, f"error: {err}\n")
+    traces = [rollout(env, baseline, args.seed + i) for i in range(args.episodes)]
+    returns = np.array([t.sum() for t in traces])
+    lengths = np.array([len(t) for t in traces])
+    print(f"{args.env_id}, {args.episodes} episodes from seed {args.seed}")
+    print(f"return          {returns.mean():.1f} ± {returns.std():.1f} (min {returns.min():.1f}, max {returns.max():.1f})")
+    print(f"reward per step {returns.sum() / lengths.sum():.3f}")
+    print(f"episode length  {lengths.mean():.1f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,33 @@
+"""Create any environment the scripts accept, including this project's own ids."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+
+# Env ids that need an extra import to be registered, by prefix of the id.
+_LAZY_REGISTRATIONS = {
+    "BulletEnv-v": "pybullet_envs_gymnasium",  # Walker2DBulletEnv-v0 and its siblings
+}
+
+
+def _register_lazily(env_id: str) -> None:
+    for marker, module in _LAZY_REGISTRATIONS.items():
+        if marker in env_id and env_id not in gym.registry:
+            __import__(module)
+
+
+def make_env(env_id: str, seed: int | None = None, render_mode: str | None = None) -> gym.Env:
+    """Make ``env_id`` with Gymnasium's default wrappers (TimeLimit included).
+
+    ``seed`` seeds the action space (for random warm-up actions); episodes are seeded by the
+    caller through ``env.reset(seed=...)``. Raises ``ValueError`` with a one-line message for an
+    unknown id.
+    """
+    _register_lazily(env_id)
+    try:
+        env = gym.make(env_id, render_mode=render_mode)
+    except gym.error.Error as err:
+        raise ValueError(f"unknown env id {env_id!r}: {err}") from None
+    if seed is not None:
+        env.action_space.seed(seed)
+    return env
