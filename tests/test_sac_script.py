@@ -1,0 +1,140 @@
+"""sac_continuous.py end to end: truncation handling, logging, checkpoints, errors, copyability."""
+
+import os
+import runpy
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from conftest import ROOT
+
+TINY = ["--hidden-size", "32", "--batch-size", "32", "--log-every", "50"]
+
+
+def run_script(script: Path, args: list[str], cwd: Path, env: dict | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(script), *args], cwd=cwd, capture_output=True, text=True, env=env)
+
+
+def scalars(run_dir: Path) -> dict[str, list[float]]:
+    events = EventAccumulator(str(run_dir), size_guidance={"scalars": 0})
+    events.Reload()
+    return {tag: [e.value for e in events.Scalars(tag)] for tag in events.Tags()["scalars"]}
+
+
+def pendulum_step(obs: np.ndarray, torque: float) -> np.ndarray:
+    """Pendulum-v1's dynamics, written out independently of gymnasium."""
+    theta, w = np.arctan2(obs[1], obs[0]), obs[2]
+    u = np.clip(torque, -2.0, 2.0)
+    w = np.clip(w + (3 * 10.0 / 2 * np.sin(theta) + 3.0 * u) * 0.05, -8.0, 8.0)
+    theta = theta + w * 0.05
+    return np.array([np.cos(theta), np.sin(theta), w])
+
+
+def test_truncated_transition_keeps_its_true_next_observation(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["sac_continuous.py", "--total-timesteps", "250", "--learning-starts", "100", *TINY])
+    g = runpy.run_path(str(ROOT / "sac_continuous.py"), run_name="__main__")
+    rb, seed = g["rb"], g["args"].seed
+    assert rb.size == 250
+    last = 199  # Pendulum-v1 truncates after 200 steps and never terminates
+    assert rb.terminations[: rb.size].sum() == 0
+    torque = 2.0 * rb.actions[last, 0]  # policy units [-1, 1] -> [-2, 2] N m
+    np.testing.assert_allclose(rb.next_obs[last], pendulum_step(rb.obs[last], torque), atol=1e-5)
+    # inside an episode, next_obs is the following obs; across the boundary it is not
+    np.testing.assert_array_equal(rb.next_obs[:last], rb.obs[1 : last + 1])
+    reset_obs, _ = g["make_env"]("Pendulum-v1", seed).reset(seed=seed + 1)
+    np.testing.assert_array_equal(rb.obs[last + 1], reset_obs)
+    assert not np.allclose(rb.next_obs[last], rb.obs[last + 1])
+
+
+def test_end_to_end_logs_saves_and_evaluates(tmp_path, sac):
+    out = run_script(
+        ROOT / "sac_continuous.py",
+        ["--total-timesteps", "450", "--learning-starts", "150", "--save-model", "--eval-episodes", "2", *TINY],
+        tmp_path,
+    )
+    assert out.returncode == 0, out.stderr
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    assert run_dir.name.startswith("Pendulum-v1__sac_continuous__1__")
+    logged = scalars(run_dir)
+    for key in [
+        "charts/episodic_return", "charts/episodic_length", "charts/SPS", "losses/qf_loss", "losses/actor_loss",
+        "losses/alpha", "charts/baseline_regret", "charts/baseline_regret_per_step", "charts/baseline_return",
+        "eval/episodic_return",
+    ]:  # fmt: skip
+        assert key in logged, key
+        assert np.all(np.isfinite(logged[key])), key
+    assert len(logged["charts/episodic_return"]) == 2 and len(logged["eval/episodic_return"]) == 2
+    # regret is cumulative and the untrained agent is worse than the swing-up baseline
+    assert logged["charts/baseline_regret"][1] >= logged["charts/baseline_regret"][0] > 0
+    assert logged["losses/alpha"][-1] != 0.2, "the entropy coefficient was tuned"
+
+    (checkpoint,) = run_dir.glob("*.cleanrl_model")
+    returns = sac.evaluate(str(checkpoint), "Pendulum-v1", episodes=2, seed=1)
+    np.testing.assert_allclose(returns, logged["eval/episodic_return"], rtol=1e-5)  # deterministic policy
+
+
+def test_checkpoint_round_trip_and_errors(tmp_path, sac):
+    env = sac.make_env("Pendulum-v1", 0)
+    actor, qf1, qf2 = sac.Actor(3, 1, 16), sac.SoftQNetwork(3, 1, 16), sac.SoftQNetwork(3, 1, 16)
+    args = sac.Args(hidden_size=16)
+    path = tmp_path / "model.cleanrl_model"
+    sac.save_checkpoint(str(path), "Pendulum-v1", env, actor, qf1, qf2, args)
+    restored = sac.actor_from_checkpoint(sac.load_checkpoint(str(path)), env)
+    x = torch.randn(5, 3)
+    torch.testing.assert_close(restored(x), actor(x))
+
+    corrupt = tmp_path / "corrupt.cleanrl_model"
+    corrupt.write_bytes(path.read_bytes()[:200])
+    with pytest.raises(ValueError, match="not a readable checkpoint"):
+        sac.load_checkpoint(str(corrupt))
+    other = tmp_path / "other.pt"
+    torch.save({"weights": torch.zeros(2)}, other)
+    with pytest.raises(ValueError, match="not a jirl-sac-checkpoint-v1 checkpoint"):
+        sac.load_checkpoint(str(other))
+    lander = sac.make_env("LunarLanderContinuous-v3", 0)
+    with pytest.raises(ValueError, match="checkpoint expects 3 observations and 1 actions"):
+        sac.actor_from_checkpoint(sac.load_checkpoint(str(path)), lander)
+    assert path.exists() and corrupt.exists(), "a failed load deletes nothing"
+
+
+@pytest.mark.parametrize(
+    "env_id, message",
+    [("NoSuchEnv-v0", "unknown env id 'NoSuchEnv-v0'"), ("CartPole-v1", "Discrete(2) action space")],
+)
+def test_bad_env_id_is_a_one_line_error(tmp_path, env_id, message):
+    out = run_script(ROOT / "sac_continuous.py", ["--env-id", env_id, "--total-timesteps", "10"], tmp_path)
+    assert out.returncode != 0
+    assert message in out.stderr
+    assert "Traceback" not in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr
+    assert not (tmp_path / "runs").exists(), "nothing is written before the input is validated"
+
+
+def test_missing_baseline_errors_only_when_regret_is_demanded(tmp_path):
+    out = run_script(
+        ROOT / "sac_continuous.py",
+        ["--env-id", "MountainCarContinuous-v0", "--regret-estimator", "paired", "--total-timesteps", "10"],
+        tmp_path,
+    )
+    assert out.returncode != 0 and "no baseline for MountainCarContinuous-v0" in out.stderr
+
+
+def test_script_copied_alone_runs_with_a_user_baseline(tmp_path):
+    shutil.copy(ROOT / "sac_continuous.py", tmp_path)
+    (tmp_path / "my_baseline.py").write_text(
+        "import numpy as np\ndef no_torque(obs):\n    return np.zeros(1, dtype=np.float32)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    args = ["--env-id", "Pendulum-v1", "--baseline", "my_baseline:no_torque", "--total-timesteps", "300",
+            "--learning-starts", "100", "--baseline-eval-episodes", "1", *TINY]  # fmt: skip
+    out = run_script(tmp_path / "sac_continuous.py", args, tmp_path, env)
+    assert out.returncode == 0, out.stderr
+    assert "baseline regret estimator: paired" in out.stdout
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    assert "charts/baseline_regret_per_step" in scalars(run_dir)
