@@ -131,7 +131,10 @@ def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.nd
     obs, _ = env.reset(seed=seed)
     first_obs, rewards, done = obs, [], False
     while not done:
-        obs, reward, terminated, truncated, _ = env.step(baseline(obs))
+        action = baseline(obs)
+        if action is None:
+            raise ValueError("the baseline returned None (it only intervenes), so it cannot be measured; use --regret-estimator off")
+        obs, reward, terminated, truncated, _ = env.step(action)
         rewards.append(float(reward))
         done = terminated or truncated
     return first_obs, np.asarray(rewards)
@@ -366,15 +369,18 @@ if __name__ == "__main__":
 
     # Baseline measurement on the evaluation seeds, so it compares with eval/episodic_return
     estimator, baseline_reward_per_step, baseline_seconds = "off", 0.0, 0.0
-    if baseline is not None:
+    if baseline is not None and args.regret_estimator != "off":
         shadow_env = make_env(args.env_id, args.seed)  # runs the baseline beside the training env
-        traces = [baseline_rollout(shadow_env, baseline, args.seed + EVAL_SEED_OFFSET + i)[1] for i in range(args.baseline_eval_episodes)]
+        try:
+            traces = [baseline_rollout(shadow_env, baseline, args.seed + EVAL_SEED_OFFSET + i)[1] for i in range(args.baseline_eval_episodes)]
+        except ValueError as err:
+            raise SystemExit(f"{args.exp_name}: error: {err}")
         baseline_return = float(np.mean([t.sum() for t in traces]))
         baseline_reward_per_step = float(sum(t.sum() for t in traces) / sum(len(t) for t in traces))
         writer.add_scalar("charts/baseline_return", baseline_return, 0)
         writer.add_scalar("charts/baseline_reward_per_step", baseline_reward_per_step, 0)
         print(f"baseline: return {baseline_return:.1f}, reward per step {baseline_reward_per_step:.3f}")
-        estimator = "paired" if args.regret_estimator in ("auto", "paired") else "unpaired"
+        estimator = {"off": "off", "unpaired": "unpaired"}.get(args.regret_estimator, "paired")
     baseline_regret = baseline_regret_per_step = 0.0
 
     # TRY NOT TO MODIFY: start the game

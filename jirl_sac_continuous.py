@@ -1,0 +1,673 @@
+# JIRL (Dey et al., "A Joint Imitation-Reinforcement Learning Framework for Reduced Baseline Regret")
+# on top of Soft Actor-Critic: `diff sac_continuous.py jirl_sac_continuous.py` shows exactly what JIRL adds.
+# Run: python jirl_sac_continuous.py --env-id Pendulum-v1 --total-timesteps 20000
+import importlib
+import math
+import os
+import random
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Callable, Literal, Optional
+
+import gymnasium as gym
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+import torch.optim as optim
+import tyro
+from torch.utils.tensorboard import SummaryWriter
+
+try:  # this repository's env ids and baselines; absent when the script is copied alone
+    from envs import get_baseline as project_baseline
+    from envs import make_env as project_make_env
+except ImportError:
+    project_baseline = project_make_env = None
+
+CHECKPOINT_FORMAT = "jirl-sac-checkpoint-v1"
+EVAL_SEED_OFFSET = 1_000_000  # evaluation episodes (and the baseline's) never reuse a training reset seed
+BASELINE_ACTION_EPS = 1e-3  # a^b is clipped into [-1 + eps, 1 - eps], where the tanh-squashed density is finite
+RHO_FLOOR = 1e-6  # rho <= 0 (negative differential entropy) counts as this: maximal confidence and agreement
+
+
+@dataclass
+class Args:
+    exp_name: str = os.path.basename(__file__)[: -len(".py")]
+    """the name of this experiment"""
+    seed: int = 1
+    """seed of the experiment; training episode e starts from env.reset(seed=seed + e)"""
+    torch_threads: int = 1
+    """torch CPU threads (2 threads collapse when another process shares a 2-core machine)"""
+    capture_video: bool = False
+    """whether to record videos of the agent to `videos/{run_name}` (needs moviepy)"""
+    save_model: bool = False
+    """whether to save a checkpoint to `runs/{run_name}` and evaluate it at the end"""
+    eval_episodes: int = 10
+    """deterministic evaluation episodes after training (with --save-model)"""
+    log_every: int = 100
+    """log losses and SPS every this many steps"""
+
+    # Algorithm specific arguments
+    env_id: str = "Pendulum-v1"
+    """the id of the environment (any Gymnasium env with a Box action space)"""
+    total_timesteps: int = 20_000
+    """total timesteps of the experiment"""
+    buffer_size: int = 1_000_000
+    """the replay memory buffer size"""
+    gamma: float = 0.99
+    """the discount factor gamma"""
+    tau: float = 0.005
+    """target smoothing coefficient"""
+    batch_size: int = 256
+    """the batch size of samples from the replay memory"""
+    learning_starts: int = 5_000
+    """timestep to start learning (JIRL acts with the gate from the first step, never uniformly at random)"""
+    hidden_size: int = 256
+    """units in each of the two hidden layers of every network (the paper used 64, 256 for Walker2D)"""
+    policy_lr: float = 3e-4
+    """the learning rate of the policy network optimizer"""
+    q_lr: float = 1e-3
+    """the learning rate of the Q network optimizer (and of the entropy coefficient)"""
+    policy_frequency: int = 2
+    """the frequency of training policy (delayed, repeated to keep one actor step per env step)"""
+    target_network_frequency: int = 1
+    """the frequency of updates for the target networks"""
+    alpha: float = 0.2
+    """entropy regularization coefficient (initial value with --autotune)"""
+    autotune: bool = True
+    """automatic tuning of the entropy coefficient"""
+
+    # Baseline regret
+    baseline: str = ""
+    """baseline controller as module:function returning env-unit actions (default: this project's baseline for env_id)"""
+    regret_estimator: Literal["auto", "paired", "unpaired", "off"] = "auto"
+    """paired: a shadow env runs the baseline from each training episode's reset seed; unpaired: the baseline's mean reward per step; auto: paired when the env reproduces a seeded reset"""
+    baseline_eval_episodes: int = 10
+    """episodes measuring the baseline's mean return and reward per step (the unpaired estimator)"""
+
+    # JIRL
+    gate_c: float = 1.0
+    """the gate's scaling factor C (Alg. 3): larger keeps the baseline in control longer"""
+    gate_k: int = 5
+    """the gate's window K (Alg. 3): steps whose densities and divergences are multiplied"""
+    guidance_steps: int = 10_000
+    """C decays linearly to 0 over this many steps, handing control to the agent (0: the paper's constant C)"""
+    penalty_sigma2: float = 0.1
+    """the penalized reward's variance sigma^2 (Alg. 2), in policy action units [-1, 1]"""
+    switch_penalty: float = -1.0
+    """reward of the extra transition whose RL action made the baseline take control (paper, Sec. V.A)"""
+    use_switch_penalty: bool = True
+    """whether to store the switch-penalty transition"""
+    intervention_mode: bool = False
+    """a baseline action, when given, always acts (a safety driver); None lets the agent act (paper, end of Sec. IV.B)"""
+    rl_control_window: int = 1000
+    """charts/rl_control_fraction is the share of the last this-many steps in which the agent acted"""
+
+
+def make_env(env_id: str, seed: int, capture_video: bool = False, run_name: str = "") -> gym.Env:
+    """One env (no vector wrapper: episodes are reset explicitly, so there is no autoreset to undo)."""
+    render_mode = "rgb_array" if capture_video else None
+    if project_make_env is not None:
+        env = project_make_env(env_id, seed, render_mode)
+    else:
+        try:
+            env = gym.make(env_id, render_mode=render_mode)
+        except gym.error.Error as err:
+            raise ValueError(f"unknown env id {env_id!r}: {err}") from None
+        env.action_space.seed(seed)
+    if not isinstance(env.action_space, gym.spaces.Box):
+        raise ValueError(f"{env_id} has a {env.action_space} action space; this script needs a continuous (Box) one")
+    if not np.all(np.isfinite(env.action_space.low) & np.isfinite(env.action_space.high)):
+        raise ValueError(f"{env_id} has an unbounded action space {env.action_space}; SAC squashes actions into bounds")
+    if not isinstance(env.observation_space, gym.spaces.Box) or len(env.observation_space.shape) != 1:
+        raise ValueError(f"{env_id} has observations {env.observation_space}; this script needs a flat Box")
+    if capture_video:
+        env = gym.wrappers.RecordVideo(env, f"videos/{run_name}")
+    return env
+
+
+def load_baseline(spec: str, env_id: str) -> Optional[Callable]:
+    """The baseline `module:function` (a class is instantiated), else this project's one for env_id, else None."""
+    if spec:
+        module_name, sep, attribute = spec.partition(":")
+        if not sep:
+            raise ValueError(f"baseline {spec!r} must look like 'module:function'")
+        try:
+            baseline = getattr(importlib.import_module(module_name), attribute)
+        except (ImportError, AttributeError) as err:
+            raise ValueError(f"cannot load baseline {spec!r}: {err}") from None
+        return baseline() if isinstance(baseline, type) else baseline
+    if project_baseline is None:
+        return None
+    try:
+        return project_baseline(env_id)
+    except ValueError:
+        return None
+
+
+def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """One baseline episode from env.reset(seed=seed): (initial observation, reward of every step)."""
+    if hasattr(baseline, "reset"):
+        baseline.reset()
+    obs, _ = env.reset(seed=seed)
+    first_obs, rewards, done = obs, [], False
+    while not done:
+        action = baseline(obs)
+        if action is None:
+            raise ValueError("the baseline returned None (it only intervenes), so it cannot be measured; use --regret-estimator off")
+        obs, reward, terminated, truncated, _ = env.step(action)
+        rewards.append(float(reward))
+        done = terminated or truncated
+    return first_obs, np.asarray(rewards)
+
+
+def paired_regret(rewards: np.ndarray, baseline_rewards: np.ndarray) -> tuple[float, float]:
+    """Baseline regret of one episode against the baseline's episode from the same initial state.
+
+    Returns (max(0, R^b - R), sum_t max(0, r^b_t - r_t)), the per-step sum being the paper's
+    Definition 1; steps align by index and a finished trajectory earns 0 after its end.
+    """
+    steps = max(len(rewards), len(baseline_rewards))
+    r = np.zeros(steps)
+    r[: len(rewards)] = rewards
+    r_b = np.zeros(steps)
+    r_b[: len(baseline_rewards)] = baseline_rewards
+    return max(0.0, float(r_b.sum() - r.sum())), float(np.maximum(r_b - r, 0.0).sum())
+
+
+def unpaired_regret(rewards: np.ndarray, baseline_reward_per_step: float) -> tuple[float, float]:
+    """Fallback when episodes cannot be paired: the baseline earns b per step.
+
+    Returns (max(0, b L - R), sum_t max(0, b - r_t)); the per-step form overstates the paired one.
+    """
+    rewards = np.asarray(rewards, dtype=np.float64)
+    b = baseline_reward_per_step
+    return max(0.0, b * len(rewards) - float(rewards.sum())), float(np.maximum(b - rewards, 0.0).sum())
+
+
+def to_env_units(action: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """Policy actions live in [-1, 1]; the env's in [low, high]."""
+    return low + (action + 1.0) * 0.5 * (high - low)
+
+
+def to_policy_units(action: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """The baseline speaks env units; everything stored or compared is in [-1, 1]."""
+    return np.clip(2.0 * (np.asarray(action, dtype=np.float64) - low) / (high - low) - 1.0, -1.0, 1.0)
+
+
+def penalized_reward(reward: float, baseline_action: np.ndarray, rl_action: np.ndarray, sigma2: float) -> float:
+    """Alg. 2: r^p = r - |r| (1 - exp(-||a^b - a^rl|| / sigma^2)).
+
+    Additive, so r^p <= r for either sign of r (the authors' car code multiplied r by the
+    exponential, which rewards deviation when r < 0).
+    """
+    distance = float(np.linalg.norm(np.asarray(baseline_action) - np.asarray(rl_action)))
+    return float(reward - abs(reward) * (1.0 - math.exp(-distance / sigma2)))
+
+
+def log1m_tanh_sq(x: np.ndarray) -> np.ndarray:
+    """log(1 - tanh(x)^2), stable for large |x|."""
+    x = np.abs(x)
+    return 2.0 * (math.log(2.0) - x - np.logaddexp(0.0, -2.0 * x))
+
+
+def squashed_log_prob(mean: np.ndarray, log_std: np.ndarray, action: np.ndarray) -> float:
+    """log pi(a|s) of the tanh-squashed Gaussian at `action` in [-1, 1] (change of variables)."""
+    y = np.clip(action, -1.0 + BASELINE_ACTION_EPS, 1.0 - BASELINE_ACTION_EPS)
+    x = np.arctanh(y)
+    log_normal = -0.5 * ((x - mean) / np.exp(log_std)) ** 2 - log_std - 0.5 * math.log(2.0 * math.pi)
+    return float(np.sum(log_normal - np.log1p(-y * y)))
+
+
+def divergence(mean: np.ndarray, log_std: np.ndarray, baseline_action: np.ndarray) -> float:
+    """Alg. 3: rho = H(pi(.|s)) + ||a^b - E_pi[A|s]||.
+
+    H is the entropy of the Gaussian pushed through tanh linearised at its mean (exact for small
+    std, no sampling); E_pi[A|s] is taken as tanh(mean), the action SAC deploys.
+    """
+    entropy = np.sum(0.5 * math.log(2.0 * math.pi * math.e) + log_std + log1m_tanh_sq(mean))
+    return float(entropy + np.linalg.norm(baseline_action - np.tanh(mean)))
+
+
+class Gate:
+    """Alg. 3: the agent acts iff prod_{i=t-k}^{t} pi(a^b_i|s_i) > C prod_{i=t-k}^{t} rho_i, in log space.
+
+    k = min(K, steps since the last control switch); an episode start also starts a new window.
+    """
+
+    def __init__(self, k_max: int):
+        self.log_probs: deque = deque(maxlen=k_max + 1)
+        self.log_rhos: deque = deque(maxlen=k_max + 1)
+        self.rl_in_control: Optional[bool] = None
+
+    def decide(self, log_prob_baseline: float, rho: float, c: float) -> bool:
+        self.log_probs.append(log_prob_baseline)
+        self.log_rhos.append(math.log(max(rho, RHO_FLOOR)))
+        log_c = math.log(c) if c > 0 else -math.inf
+        # a NaN on either side compares False: the baseline keeps control
+        return bool(sum(self.log_probs) > log_c + sum(self.log_rhos))
+
+    def record(self, rl_acts: bool) -> bool:
+        """Note who acted this step; returns True on a control switch (the window restarts there)."""
+        switched = self.rl_in_control is not None and rl_acts != self.rl_in_control
+        if switched:
+            for window in (self.log_probs, self.log_rhos):
+                while len(window) > 1:
+                    window.popleft()
+        self.rl_in_control = rl_acts
+        return switched
+
+    def skip(self) -> None:
+        """No baseline action this step (intervention mode): the product over the window breaks."""
+        self.log_probs.clear()
+        self.log_rhos.clear()
+
+    def new_episode(self) -> None:
+        self.skip()
+        self.rl_in_control = None
+
+
+class ReplayBuffer:
+    """Preallocated ring buffer; actions are stored in policy units [-1, 1]."""
+
+    def __init__(self, capacity: int, obs_dim: int, act_dim: int, seed: int):
+        self.capacity, self.size, self.pos = capacity, 0, 0
+        self.obs = np.zeros((capacity, obs_dim), dtype=np.float32)
+        self.next_obs = np.zeros((capacity, obs_dim), dtype=np.float32)
+        self.actions = np.zeros((capacity, act_dim), dtype=np.float32)
+        self.rewards = np.zeros((capacity, 1), dtype=np.float32)
+        self.terminations = np.zeros((capacity, 1), dtype=np.float32)
+        self.rng = np.random.default_rng(seed)
+
+    def add(self, obs, action, reward: float, next_obs, terminated: bool) -> None:
+        i = self.pos
+        self.obs[i], self.actions[i], self.rewards[i] = obs, action, reward
+        self.next_obs[i], self.terminations[i] = next_obs, terminated
+        self.pos = (self.pos + 1) % self.capacity
+        self.size = min(self.size + 1, self.capacity)
+
+    def sample(self, batch_size: int) -> tuple[torch.Tensor, ...]:
+        idx = self.rng.integers(0, self.size, size=batch_size)
+        arrays = (self.obs, self.actions, self.rewards, self.next_obs, self.terminations)
+        return tuple(torch.from_numpy(a[idx]) for a in arrays)
+
+
+class SoftQNetwork(nn.Module):
+    def __init__(self, obs_dim: int, act_dim: int, hidden_size: int):
+        super().__init__()
+        self.fc1 = nn.Linear(obs_dim + act_dim, hidden_size)
+        self.fc2 = nn.Linear(hidden_size, hidden_size)
+        self.fc3 = nn.Linear(hidden_size, 1)
+
+    def forward(self, x: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        x = torch.cat([x, a], 1)
+        x = F.relu(self.fc1(x))
+        x = F.relu(self.fc2(x))
+        return self.fc3(x)
+
+
+LOG_STD_MAX = 2
+LOG_STD_MIN = -5
+
+
+class Actor(nn.Module):
+    """Tanh-squashed Gaussian policy over actions in [-1, 1]."""
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden_size: int):
+        super().__init__()
+        self.fc1 = nn.Linear(obs_dim, hidden_size)
+        self.fc2 = nn.Linear(hidden_size, hidden_size)
+        self.fc_mean = nn.Linear(hidden_size, act_dim)
+        self.fc_logstd = nn.Linear(hidden_size, act_dim)
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        x = F.relu(self.fc1(x))
+        x = F.relu(self.fc2(x))
+        mean = self.fc_mean(x)
+        log_std = torch.tanh(self.fc_logstd(x))
+        log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (log_std + 1)  # From SpinUp / Denis Yarats
+        return mean, log_std
+
+    def get_action(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(sampled action, its log-density, deterministic action tanh(mean))."""
+        mean, log_std = self(x)
+        normal = torch.distributions.Normal(mean, log_std.exp())
+        x_t = normal.rsample()  # reparameterization trick (mean + std * N(0,1))
+        y_t = torch.tanh(x_t)
+        # change of variables through tanh, in the stable form log(1 - tanh(x)^2) = 2 (log 2 - x - softplus(-2x))
+        log_prob = normal.log_prob(x_t) - 2.0 * (np.log(2.0) - x_t - F.softplus(-2.0 * x_t))
+        return y_t, log_prob.sum(1, keepdim=True), torch.tanh(mean)
+
+
+def save_checkpoint(path: str, env_id: str, env: gym.Env, actor: Actor, qf1, qf2, args: Args) -> None:
+    """Everything needed to rebuild and check the actor: weights, spaces, hyperparameters."""
+    torch.save(
+        {
+            "format": CHECKPOINT_FORMAT,
+            "env_id": env_id,
+            "obs_dim": int(env.observation_space.shape[0]),
+            "action_low": env.action_space.low.tolist(),
+            "action_high": env.action_space.high.tolist(),
+            "hidden_size": args.hidden_size,
+            "actor": actor.state_dict(),
+            "qf1": qf1.state_dict(),
+            "qf2": qf2.state_dict(),
+            "args": vars(args),
+        },
+        path,
+    )
+
+
+def load_checkpoint(path: str) -> dict:
+    """Read a checkpoint written by save_checkpoint; ValueError if it is not one."""
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise
+    except Exception as err:  # torch raises many types for a damaged file
+        raise ValueError(f"{path} is not a readable checkpoint ({type(err).__name__}: {err})") from None
+    if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path} is not a {CHECKPOINT_FORMAT} checkpoint")
+    return checkpoint
+
+
+def actor_from_checkpoint(checkpoint: dict, env: gym.Env) -> Actor:
+    """The checkpoint's actor, after checking that it was trained on spaces like env's."""
+    obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    if checkpoint["obs_dim"] != obs_dim or len(checkpoint["action_low"]) != act_dim:
+        raise ValueError(
+            f"checkpoint expects {checkpoint['obs_dim']} observations and {len(checkpoint['action_low'])} actions"
+            f" ({checkpoint['env_id']}); this env has {obs_dim} and {act_dim}"
+        )
+    if not np.allclose(checkpoint["action_low"], env.action_space.low) or not np.allclose(
+        checkpoint["action_high"], env.action_space.high
+    ):
+        raise ValueError(f"checkpoint action bounds differ from this env's {env.action_space}")
+    actor = Actor(obs_dim, act_dim, checkpoint["hidden_size"])
+    try:
+        actor.load_state_dict(checkpoint["actor"])
+    except RuntimeError as err:
+        raise ValueError(f"checkpoint actor weights do not fit: {err}") from None
+    return actor.eval()
+
+
+def evaluate(path: str, env_id: str, episodes: int, seed: int) -> list[float]:
+    """Returns of the checkpoint's deterministic policy, episode i reset with seed + EVAL_SEED_OFFSET + i."""
+    env = make_env(env_id, seed)
+    actor = actor_from_checkpoint(load_checkpoint(path), env)
+    low, high = env.action_space.low, env.action_space.high
+    returns = []
+    for i in range(episodes):
+        obs, _ = env.reset(seed=seed + EVAL_SEED_OFFSET + i)
+        episode_return, done = 0.0, False
+        while not done:
+            with torch.inference_mode():
+                _, _, action = actor.get_action(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0))
+            obs, reward, terminated, truncated, _ = env.step(to_env_units(action[0].numpy(), low, high))
+            episode_return += float(reward)
+            done = terminated or truncated
+        returns.append(episode_return)
+    env.close()
+    return returns
+
+
+if __name__ == "__main__":
+    args = tyro.cli(Args)
+    run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
+
+    # TRY NOT TO MODIFY: seeding
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    torch.set_num_threads(args.torch_threads)
+
+    # env setup; bad input ends here with one line, before anything is written
+    try:
+        env = make_env(args.env_id, args.seed, args.capture_video, run_name)
+        baseline = load_baseline(args.baseline, args.env_id)
+        if baseline is None:
+            raise ValueError(f"JIRL needs a baseline and {args.env_id} has none; pass --baseline module:function")
+        if args.penalty_sigma2 <= 0 or args.gate_c < 0 or args.gate_k < 0 or args.guidance_steps < 0:
+            raise ValueError("--penalty-sigma2 must be > 0; --gate-c, --gate-k and --guidance-steps must be >= 0")
+    except ValueError as err:
+        raise SystemExit(f"{args.exp_name}: error: {err}")
+    if baseline is None and args.regret_estimator in ("paired", "unpaired"):
+        raise SystemExit(f"{args.exp_name}: error: no baseline for {args.env_id}; pass --baseline module:function")
+    obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    low, high = env.action_space.low, env.action_space.high
+
+    writer = SummaryWriter(f"runs/{run_name}")
+    writer.add_text(
+        "hyperparameters",
+        "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])),
+    )
+
+    actor = Actor(obs_dim, act_dim, args.hidden_size)
+    qf1 = SoftQNetwork(obs_dim, act_dim, args.hidden_size)
+    qf2 = SoftQNetwork(obs_dim, act_dim, args.hidden_size)
+    qf1_target = SoftQNetwork(obs_dim, act_dim, args.hidden_size)
+    qf2_target = SoftQNetwork(obs_dim, act_dim, args.hidden_size)
+    qf1_target.load_state_dict(qf1.state_dict())
+    qf2_target.load_state_dict(qf2.state_dict())
+    q_optimizer = optim.Adam(list(qf1.parameters()) + list(qf2.parameters()), lr=args.q_lr)
+    actor_optimizer = optim.Adam(list(actor.parameters()), lr=args.policy_lr)
+    q_params = list(qf1.parameters()) + list(qf2.parameters())
+    q_target_params = list(qf1_target.parameters()) + list(qf2_target.parameters())
+
+    # Automatic entropy tuning
+    if args.autotune:
+        target_entropy = -float(act_dim)
+        log_alpha = torch.zeros(1, requires_grad=True)
+        with torch.no_grad():
+            log_alpha.fill_(np.log(args.alpha))
+        alpha = log_alpha.exp().detach()
+        a_optimizer = optim.Adam([log_alpha], lr=args.q_lr)
+    else:
+        alpha = torch.tensor(args.alpha)
+
+    rb = ReplayBuffer(args.buffer_size, obs_dim, act_dim, args.seed)
+    actor_loss = alpha_loss = None  # logged once the first actor update has run
+    gate = Gate(args.gate_k)
+    rl_control = deque(maxlen=args.rl_control_window)  # who acted in the last steps, for the RL-control fraction
+    control_switches = fabricated_transitions = 0
+    gate_log_prob_sum = gate_log_rho_sum = 0.0
+    gate_terms = 0
+    previous_rl_transition = None  # (s, a^rl) of the last step if the agent acted then
+    phase_regret = {"0_50": [0.0, 0.0], "50_100": [0.0, 0.0], "100": [0.0, 0.0]}  # Table I's RL-control phases
+
+    # Baseline measurement on the evaluation seeds, so it compares with eval/episodic_return
+    estimator, baseline_reward_per_step, baseline_seconds = "off", 0.0, 0.0
+    if baseline is not None and args.regret_estimator != "off":
+        shadow_env = make_env(args.env_id, args.seed)  # runs the baseline beside the training env
+        try:
+            traces = [baseline_rollout(shadow_env, baseline, args.seed + EVAL_SEED_OFFSET + i)[1] for i in range(args.baseline_eval_episodes)]
+        except ValueError as err:
+            raise SystemExit(f"{args.exp_name}: error: {err}")
+        baseline_return = float(np.mean([t.sum() for t in traces]))
+        baseline_reward_per_step = float(sum(t.sum() for t in traces) / sum(len(t) for t in traces))
+        writer.add_scalar("charts/baseline_return", baseline_return, 0)
+        writer.add_scalar("charts/baseline_reward_per_step", baseline_reward_per_step, 0)
+        print(f"baseline: return {baseline_return:.1f}, reward per step {baseline_reward_per_step:.3f}")
+        estimator = {"off": "off", "unpaired": "unpaired"}.get(args.regret_estimator, "paired")
+    baseline_regret = baseline_regret_per_step = 0.0
+
+    # TRY NOT TO MODIFY: start the game
+    start_time = time.time()
+    episode, episode_rewards = 0, []
+    obs, _ = env.reset(seed=args.seed)
+    if estimator == "paired":
+        t0 = time.time()
+        baseline_first_obs, baseline_rewards = baseline_rollout(shadow_env, baseline, args.seed)
+        baseline_seconds += time.time() - t0
+        if not np.array_equal(baseline_first_obs, obs):  # the env ignores its reset seed: pairing is impossible
+            if args.regret_estimator == "paired":
+                raise SystemExit(f"{args.exp_name}: error: {args.env_id} does not reproduce a seeded reset; use --regret-estimator unpaired")
+            estimator = "unpaired"
+    if baseline is not None:
+        print(f"baseline regret estimator: {estimator}")
+        writer.add_text("baseline_regret_estimator", estimator)
+    if hasattr(baseline, "reset"):
+        baseline.reset()
+
+    for global_step in range(args.total_timesteps):
+        # ALGO LOGIC: put action logic here
+        baseline_env_action = baseline(obs)  # Alg. 1, line 3: the baseline's action a^b
+        with torch.inference_mode():
+            mean, log_std = actor(torch.from_numpy(obs).float().unsqueeze(0))
+            rl_action = torch.tanh(torch.normal(mean, log_std.exp()))[0].numpy()  # a^rl ~ pi(.|s_t)
+        mean, log_std = mean[0].numpy().astype(np.float64), log_std[0].numpy().astype(np.float64)
+        if baseline_env_action is None:  # the baseline does not intervene: the agent acts, no gate
+            rl_acts, baseline_action = True, None
+            gate.skip()
+        else:
+            baseline_action = to_policy_units(baseline_env_action, low, high)
+            if args.intervention_mode:
+                rl_acts = False
+            else:  # Alg. 1, line 4: the gate (Alg. 3)
+                log_prob_baseline = squashed_log_prob(mean, log_std, baseline_action)
+                rho = divergence(mean, log_std, baseline_action)
+                c = args.gate_c * max(0.0, 1.0 - global_step / args.guidance_steps) if args.guidance_steps else args.gate_c
+                rl_acts = gate.decide(log_prob_baseline, rho, c)
+                gate_log_prob_sum += log_prob_baseline
+                gate_log_rho_sum += math.log(max(rho, RHO_FLOOR))
+                gate_terms += 1
+        action = rl_action if rl_acts else baseline_action.astype(np.float32)
+        control_switches += gate.record(rl_acts)
+        rl_control.append(rl_acts)
+
+        # TRY NOT TO MODIFY: execute the game and log data.
+        next_obs, reward, terminated, truncated, _ = env.step(to_env_units(action, low, high))
+        episode_rewards.append(float(reward))
+
+        # Bootstrap through time-limit truncation: store `terminated`, never `truncated`; next_obs is
+        # the true next observation because the env is reset explicitly below, never automatically.
+        rb.add(obs, action, reward, next_obs, terminated)  # Alg. 1, line 9: the real transition
+        if not rl_acts:
+            # Alg. 1, lines 11-13: the fabricated transition, the agent's own action with the penalized reward
+            rb.add(obs, rl_action, penalized_reward(reward, baseline_action, rl_action, args.penalty_sigma2), next_obs, terminated)
+            fabricated_transitions += 1
+            if previous_rl_transition is not None and args.use_switch_penalty:
+                # Sec. V.A: the RL action that made the baseline take control, again, with a fixed penalty
+                rb.add(*previous_rl_transition, args.switch_penalty, obs, False)
+        previous_rl_transition = (obs, rl_action) if rl_acts else None
+        obs = next_obs
+
+        if terminated or truncated:
+            episode_return = float(np.sum(episode_rewards))
+            print(f"global_step={global_step}, episodic_return={episode_return:.1f}")
+            writer.add_scalar("charts/episodic_return", episode_return, global_step)
+            writer.add_scalar("charts/episodic_length", len(episode_rewards), global_step)
+            if estimator != "off":
+                if estimator == "paired":
+                    regret, regret_per_step = paired_regret(np.asarray(episode_rewards), baseline_rewards)
+                else:
+                    regret, regret_per_step = unpaired_regret(np.asarray(episode_rewards), baseline_reward_per_step)
+                baseline_regret += regret
+                baseline_regret_per_step += regret_per_step
+                writer.add_scalar("charts/baseline_regret", baseline_regret, global_step)
+                writer.add_scalar("charts/baseline_regret_per_step", baseline_regret_per_step, global_step)
+                # Table I: the episode's regret goes to the phase of the current RL-control fraction
+                fraction = sum(rl_control) / len(rl_control)
+                phase = "100" if fraction >= 1.0 else "50_100" if fraction >= 0.5 else "0_50"
+                phase_regret[phase][0] += regret
+                phase_regret[phase][1] += regret_per_step
+                for name, (phase_episode, phase_per_step) in phase_regret.items():
+                    writer.add_scalar(f"phases/baseline_regret_{name}", phase_episode, global_step)
+                    writer.add_scalar(f"phases/baseline_regret_per_step_{name}", phase_per_step, global_step)
+            episode, episode_rewards = episode + 1, []
+            previous_rl_transition = None
+            gate.new_episode()
+            obs, _ = env.reset(seed=args.seed + episode)
+            if estimator == "paired":
+                t0 = time.time()
+                _, baseline_rewards = baseline_rollout(shadow_env, baseline, args.seed + episode)
+                baseline_seconds += time.time() - t0
+            if hasattr(baseline, "reset"):
+                baseline.reset()
+
+        # ALGO LOGIC: training.
+        if global_step >= args.learning_starts:
+            b_obs, b_actions, b_rewards, b_next_obs, b_terminations = rb.sample(args.batch_size)
+            with torch.no_grad():
+                next_state_actions, next_state_log_pi, _ = actor.get_action(b_next_obs)
+                qf1_next_target = qf1_target(b_next_obs, next_state_actions)
+                qf2_next_target = qf2_target(b_next_obs, next_state_actions)
+                min_qf_next_target = torch.min(qf1_next_target, qf2_next_target) - alpha * next_state_log_pi
+                next_q_value = b_rewards + (1 - b_terminations) * args.gamma * min_qf_next_target
+
+            qf1_a_values = qf1(b_obs, b_actions)
+            qf2_a_values = qf2(b_obs, b_actions)
+            qf1_loss = F.mse_loss(qf1_a_values, next_q_value)
+            qf2_loss = F.mse_loss(qf2_a_values, next_q_value)
+            qf_loss = qf1_loss + qf2_loss
+
+            # optimize the model
+            q_optimizer.zero_grad()
+            qf_loss.backward()
+            q_optimizer.step()
+
+            if global_step % args.policy_frequency == 0:  # TD 3 Delayed update support
+                for _ in range(args.policy_frequency):  # compensate for the delay by doing 'actor_update_interval' instead of 1
+                    pi, log_pi, _ = actor.get_action(b_obs)
+                    qf1_pi = qf1(b_obs, pi)
+                    qf2_pi = qf2(b_obs, pi)
+                    min_qf_pi = torch.min(qf1_pi, qf2_pi)
+                    actor_loss = ((alpha * log_pi) - min_qf_pi).mean()
+
+                    actor_optimizer.zero_grad()
+                    actor_loss.backward()
+                    actor_optimizer.step()
+
+                    if args.autotune:
+                        # the actor step's own log-probabilities, as in SB3 (saves a forward pass)
+                        alpha_loss = (-log_alpha.exp() * (log_pi.detach() + target_entropy)).mean()
+
+                        a_optimizer.zero_grad()
+                        alpha_loss.backward()
+                        a_optimizer.step()
+                        alpha = log_alpha.exp().detach()
+
+            # update the target networks
+            if global_step % args.target_network_frequency == 0:
+                with torch.no_grad():
+                    torch._foreach_lerp_(q_target_params, q_params, args.tau)
+
+            if global_step % args.log_every == 0:
+                writer.add_scalar("losses/qf1_values", qf1_a_values.mean().item(), global_step)
+                writer.add_scalar("losses/qf2_values", qf2_a_values.mean().item(), global_step)
+                writer.add_scalar("losses/qf1_loss", qf1_loss.item(), global_step)
+                writer.add_scalar("losses/qf2_loss", qf2_loss.item(), global_step)
+                writer.add_scalar("losses/qf_loss", qf_loss.item() / 2.0, global_step)
+                writer.add_scalar("losses/alpha", alpha.item(), global_step)
+                if actor_loss is not None:
+                    writer.add_scalar("losses/actor_loss", actor_loss.item(), global_step)
+                if alpha_loss is not None:
+                    writer.add_scalar("losses/alpha_loss", alpha_loss.item(), global_step)
+
+        if global_step % args.log_every == 0 and global_step > 0:
+            sps = int(global_step / (time.time() - start_time))
+            print("SPS:", sps)
+            writer.add_scalar("charts/SPS", sps, global_step)
+            writer.add_scalar("charts/baseline_rollout_seconds", baseline_seconds, global_step)
+            writer.add_scalar("charts/rl_control_fraction", sum(rl_control) / len(rl_control), global_step)
+            writer.add_scalar("charts/control_switches", control_switches, global_step)
+            writer.add_scalar("charts/fabricated_transitions", fabricated_transitions, global_step)
+            if gate_terms:
+                writer.add_scalar("gate/log_prob_baseline", gate_log_prob_sum / gate_terms, global_step)
+                writer.add_scalar("gate/log_rho", gate_log_rho_sum / gate_terms, global_step)
+                writer.add_scalar("gate/c", c, global_step)
+                gate_log_prob_sum = gate_log_rho_sum = 0.0
+                gate_terms = 0
+
+    if args.save_model:
+        model_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
+        save_checkpoint(model_path, args.env_id, env, actor, qf1, qf2, args)
+        print(f"model saved to {model_path}")
+        episodic_returns = evaluate(model_path, args.env_id, args.eval_episodes, args.seed)
+        for idx, episodic_return in enumerate(episodic_returns):
+            writer.add_scalar("eval/episodic_return", episodic_return, idx)
+        print(f"eval: mean return {np.mean(episodic_returns):.1f} over {len(episodic_returns)} episodes")
+
+    env.close()
+    writer.close()

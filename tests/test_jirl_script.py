@@ -1,0 +1,140 @@
+"""jirl_sac_continuous.py end to end: buffer accounting, intervention mode, logging, copyability, errors."""
+
+import os
+import runpy
+import shutil
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import ROOT, load_script
+from test_sac_script import TINY, run_script, scalars
+
+jirl = load_script("jirl_sac_continuous")
+
+INTERVENER = '''
+import numpy as np
+from envs.pendulum import pendulum_swing_up
+
+def when_spinning_right(obs):
+    """Intervenes (returns an action) only while theta' > 0; otherwise lets the agent act."""
+    return pendulum_swing_up(obs) if obs[2] > 0 else None
+
+def never(obs):
+    return None
+'''
+
+
+def test_buffer_holds_real_fabricated_and_switch_penalty_transitions(tmp_path, monkeypatch):
+    (tmp_path / "interveners.py").write_text(INTERVENER)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.chdir(tmp_path)
+    argv = ["jirl_sac_continuous.py", "--baseline", "interveners:when_spinning_right", "--intervention-mode",
+            "--regret-estimator", "off", "--total-timesteps", "260", "--learning-starts", "100",
+            "--penalty-sigma2", "0.05", *TINY]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", argv)
+    g = runpy.run_path(str(ROOT / "jirl_sac_continuous.py"), run_name="__main__")
+    rb, intervene = g["rb"], g["baseline"]
+    i, steps, baseline_steps, penalties, previous = 0, 0, 0, 0, None
+    while i < rb.size:
+        obs, action, reward, next_obs = rb.obs[i], rb.actions[i], float(rb.rewards[i, 0]), rb.next_obs[i]
+        baseline_action = intervene(obs)
+        i += 1
+        if baseline_action is None:  # the agent acted: one transition
+            previous = (obs, action, next_obs)
+        else:  # the baseline acted: real, fabricated and, after an agent step, the switch penalty
+            np.testing.assert_allclose(action, baseline_action / 2.0, atol=1e-6)  # stored in policy units
+            fabricated_action, fabricated_reward = rb.actions[i], float(rb.rewards[i, 0])
+            np.testing.assert_array_equal(rb.obs[i], obs)
+            np.testing.assert_array_equal(rb.next_obs[i], next_obs)
+            assert np.all(np.abs(fabricated_action) <= 1.0)
+            distance = np.linalg.norm(action.astype(np.float64) - fabricated_action)
+            assert fabricated_reward == pytest.approx(reward - abs(reward) * (1 - np.exp(-distance / 0.05)), rel=1e-4, abs=1e-5)
+            i += 1
+            baseline_steps += 1
+            if previous is not None and np.array_equal(previous[2], obs):
+                np.testing.assert_array_equal(rb.obs[i], previous[0])
+                np.testing.assert_array_equal(rb.actions[i], previous[1])
+                assert rb.rewards[i, 0] == -1.0 and rb.terminations[i, 0] == 0.0
+                np.testing.assert_array_equal(rb.next_obs[i], obs)
+                i += 1
+                penalties += 1
+            previous = None
+        steps += 1
+    assert steps == 260 and i == rb.size == 260 + baseline_steps + penalties
+    assert g["fabricated_transitions"] == baseline_steps > 20 and penalties > 5
+    assert sum(g["rl_control"]) == 260 - baseline_steps
+
+
+def test_end_to_end_logs_gate_and_regret(tmp_path):
+    args = ["--total-timesteps", "420", "--learning-starts", "150", "--guidance-steps", "300", "--save-model",
+            "--eval-episodes", "1", "--baseline-eval-episodes", "2", *TINY]  # fmt: skip
+    out = run_script(ROOT / "jirl_sac_continuous.py", args, tmp_path)
+    assert out.returncode == 0, out.stderr
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    logged = scalars(run_dir)
+    keys = ["charts/episodic_return", "charts/SPS", "losses/qf_loss", "losses/actor_loss", "charts/rl_control_fraction",
+            "charts/baseline_regret", "charts/baseline_regret_per_step", "charts/control_switches",
+            "charts/fabricated_transitions", "gate/log_prob_baseline", "gate/log_rho", "gate/c", "charts/baseline_return",
+            "phases/baseline_regret_per_step_0_50", "phases/baseline_regret_per_step_50_100",
+            "phases/baseline_regret_per_step_100", "eval/episodic_return"]  # fmt: skip
+    for key in keys:
+        assert key in logged, key
+        assert np.all(np.isfinite(logged[key])), key
+    assert logged["gate/c"][-1] == 0.0, "C annealed to 0 over --guidance-steps"
+    assert logged["charts/rl_control_fraction"][-1] > logged["charts/rl_control_fraction"][0]
+    phases = sum(logged[f"phases/baseline_regret_per_step_{p}"][-1] for p in ("0_50", "50_100", "100"))
+    assert phases == pytest.approx(logged["charts/baseline_regret_per_step"][-1], rel=1e-5)
+    (checkpoint,) = run_dir.glob("*.cleanrl_model")
+    sac = load_script("sac_continuous")
+    assert sac.evaluate(str(checkpoint), "Pendulum-v1", 1, 1) == pytest.approx(logged["eval/episodic_return"], rel=1e-5)
+
+
+def test_a_baseline_that_never_intervenes_leaves_the_agent_in_control(tmp_path, monkeypatch):
+    (tmp_path / "interveners.py").write_text(INTERVENER)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.chdir(tmp_path)
+    argv = ["jirl_sac_continuous.py", "--baseline", "interveners:never", "--regret-estimator", "off",
+            "--total-timesteps", "120", "--learning-starts", "60", *TINY]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", argv)
+    g = runpy.run_path(str(ROOT / "jirl_sac_continuous.py"), run_name="__main__")
+    assert g["rb"].size == 120 and g["fabricated_transitions"] == 0 and all(g["rl_control"])
+
+
+def test_measuring_an_intervening_baseline_is_a_clear_error(tmp_path):
+    (tmp_path / "interveners.py").write_text(INTERVENER)
+    env = dict(os.environ, PYTHONPATH=f"{tmp_path}{os.pathsep}{ROOT}")
+    out = run_script(ROOT / "jirl_sac_continuous.py", ["--baseline", "interveners:never", "--total-timesteps", "10"], tmp_path, env)
+    assert out.returncode != 0 and "use --regret-estimator off" in out.stderr and "Traceback" not in out.stderr
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--penalty-sigma2", "-0.1"], "--penalty-sigma2 must be > 0"),
+        (["--env-id", "MountainCarContinuous-v0"], "JIRL needs a baseline"),
+        (["--env-id", "CartPole-v1"], "Discrete(2) action space"),
+    ],
+)
+def test_bad_input_is_a_one_line_error(tmp_path, args, message):
+    out = run_script(ROOT / "jirl_sac_continuous.py", [*args, "--total-timesteps", "10"], tmp_path)
+    assert out.returncode != 0 and message in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1, out.stderr
+    assert not (tmp_path / "runs").exists()
+
+
+def test_script_copied_alone_runs_with_a_user_baseline(tmp_path):
+    shutil.copy(ROOT / "jirl_sac_continuous.py", tmp_path)
+    (tmp_path / "their_controller.py").write_text(
+        "import numpy as np\n"
+        "def damp(obs):\n    return np.array([-1.0 * obs[2]], dtype=np.float32)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    args = ["--env-id", "Pendulum-v1", "--baseline", "their_controller:damp", "--total-timesteps", "300",
+            "--learning-starts", "100", "--baseline-eval-episodes", "1", *TINY]  # fmt: skip
+    out = run_script(tmp_path / "jirl_sac_continuous.py", args, tmp_path, env)
+    assert out.returncode == 0, out.stderr
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    logged = scalars(run_dir)
+    assert "charts/rl_control_fraction" in logged and "charts/baseline_regret_per_step" in logged
