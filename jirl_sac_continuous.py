@@ -28,7 +28,6 @@ except ImportError:
 CHECKPOINT_FORMAT = "jirl-sac-checkpoint-v1"
 EVAL_SEED_OFFSET = 1_000_000  # evaluation episodes (and the baseline's) never reuse a training reset seed
 BASELINE_ACTION_EPS = 1e-3  # a^b is clipped into [-1 + eps, 1 - eps], where the tanh-squashed density is finite
-RHO_FLOOR = 1e-6  # rho <= 0 (negative differential entropy) counts as this: maximal confidence and agreement
 
 
 @dataclass
@@ -87,7 +86,7 @@ class Args:
     """episodes measuring the baseline's mean return and reward per step (the unpaired estimator)"""
 
     # JIRL
-    gate_c: float = 1.0
+    gate_c: float = 10.0
     """the gate's scaling factor C (Alg. 3): larger keeps the baseline in control longer"""
     gate_k: int = 5
     """the gate's window K (Alg. 3): steps whose densities and divergences are multiplied"""
@@ -230,10 +229,22 @@ def divergence(mean: np.ndarray, log_std: np.ndarray, baseline_action: np.ndarra
     return float(entropy + np.linalg.norm(baseline_action - np.tanh(mean)))
 
 
-class Gate:
-    """Alg. 3: the agent acts iff prod_{i=t-k}^{t} pi(a^b_i|s_i) > C prod_{i=t-k}^{t} rho_i, in log space.
+def log_positive_rho(rho: float) -> float:
+    """log softplus(rho): differential entropy can be negative, so rho can be <= 0 and has no log.
 
-    k = min(K, steps since the last control switch); an episode start also starts a new window.
+    softplus keeps the order of rho, stays within 0.32 of it for rho >= 1, and tends to e^rho below 0,
+    so a confident policy that agrees with the baseline still lowers the threshold smoothly.
+    """
+    if rho < -30.0:  # softplus(rho) = e^rho to 1e-13 here, and would underflow further down
+        return float(rho)
+    return float(np.log(np.logaddexp(0.0, rho)))
+
+
+class Gate:
+    """Alg. 3: the agent acts iff prod_{i=t-k}^{t} pi(a^b_i|s_i) > C prod_{i=t-k}^{t} rho+_i, in log space.
+
+    rho+ = softplus(rho); k = min(K, steps since the last control switch); an episode start also
+    starts a new window.
     """
 
     def __init__(self, k_max: int):
@@ -243,7 +254,7 @@ class Gate:
 
     def decide(self, log_prob_baseline: float, rho: float, c: float) -> bool:
         self.log_probs.append(log_prob_baseline)
-        self.log_rhos.append(math.log(max(rho, RHO_FLOOR)))
+        self.log_rhos.append(log_positive_rho(rho))
         log_c = math.log(c) if c > 0 else -math.inf
         # a NaN on either side compares False: the baseline keeps control
         return bool(sum(self.log_probs) > log_c + sum(self.log_rhos))
@@ -530,7 +541,7 @@ if __name__ == "__main__":
                 c = args.gate_c * max(0.0, 1.0 - global_step / args.guidance_steps) if args.guidance_steps else args.gate_c
                 rl_acts = gate.decide(log_prob_baseline, rho, c)
                 gate_log_prob_sum += log_prob_baseline
-                gate_log_rho_sum += math.log(max(rho, RHO_FLOOR))
+                gate_log_rho_sum += log_positive_rho(rho)
                 gate_terms += 1
         action = rl_action if rl_acts else baseline_action.astype(np.float32)
         control_switches += gate.record(rl_acts)

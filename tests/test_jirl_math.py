@@ -13,6 +13,7 @@ from conftest import load_script
 
 jirl = load_script("jirl_sac_continuous")
 sac = load_script("sac_continuous")
+others = [load_script("ppo_il"), load_script("trpo_il")]
 
 floats = st.floats(-3.0, 3.0, allow_nan=False)
 log_stds = st.floats(-4.0, 1.5, allow_nan=False)
@@ -82,7 +83,7 @@ def reference_decisions(log_probs, rhos, cs, k_max):
         k = min(k_max, t - switch_at)
         window = range(t - k, t + 1)
         product_pi = np.prod([math.exp(log_probs[i]) for i in window])
-        product_rho = np.prod([max(rhos[i], jirl.RHO_FLOOR) for i in window])
+        product_rho = np.prod([math.log1p(math.exp(rhos[i])) for i in window])  # softplus: rho may be <= 0
         decisions.append(bool(product_pi > cs[t] * product_rho))
         if t > 0 and decisions[t] != decisions[t - 1]:
             switch_at = t
@@ -129,8 +130,10 @@ def test_gate_never_acts_on_nan_and_handles_extremes():
     gate = jirl.Gate(2)
     assert gate.decide(-50.0, 1.0, 0.0) is True  # C annealed to 0: any finite density acts
     gate = jirl.Gate(2)
-    assert gate.decide(-10.0, -3.0, 1.0) is True  # rho <= 0 counts as RHO_FLOOR: log pi > log 1e-6
-    assert gate.log_rhos[-1] == pytest.approx(math.log(jirl.RHO_FLOOR))
+    assert gate.decide(-2.0, -3.0, 1.0) is True  # rho = -3 counts as softplus(-3) = 0.0486: -2 > -3.02
+    assert gate.log_rhos[-1] == pytest.approx(math.log(math.log1p(math.exp(-3.0))))
+    assert jirl.log_positive_rho(-800.0) == pytest.approx(-800.0)  # no underflow to -inf
+    assert jirl.log_positive_rho(1e6) == pytest.approx(math.log(1e6))
 
 
 rewards = st.floats(-100, 100, allow_nan=False)
@@ -169,3 +172,6 @@ def test_scripts_compute_the_same_regret(rewards, baseline_rewards):
     rewards, baseline_rewards = np.array(rewards), np.array(baseline_rewards)
     assert jirl.paired_regret(rewards, baseline_rewards) == sac.paired_regret(rewards, baseline_rewards)
     assert jirl.unpaired_regret(rewards, 0.3) == sac.unpaired_regret(rewards, 0.3)
+    for script in others:
+        assert script.paired_regret(rewards, baseline_rewards) == sac.paired_regret(rewards, baseline_rewards)
+        assert script.unpaired_regret(rewards, 0.3) == sac.unpaired_regret(rewards, 0.3)

@@ -1,0 +1,673 @@
+# PPO (Schulman et al. 2017) started from a policy that imitates the baseline: PPO+IL, one of the JIRL
+# paper's comparison methods (Sec. V.B). One file, CleanRL's shape; logs the same baseline regret as the SAC scripts.
+# Run: python ppo_il.py --env-id Pendulum-v1 --total-timesteps 100000
+import importlib
+import os
+import random
+import time
+from dataclasses import dataclass
+from typing import Callable, Literal, Optional
+
+import gymnasium as gym
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.optim as optim
+import tyro
+from torch.distributions.normal import Normal
+from torch.utils.tensorboard import SummaryWriter
+
+try:  # this repository's env ids and baselines; absent when the script is copied alone
+    from envs import get_baseline as project_baseline
+    from envs import make_env as project_make_env
+except ImportError:
+    project_baseline = project_make_env = None
+
+CHECKPOINT_FORMAT = "jirl-gaussian-checkpoint-v1"
+EVAL_SEED_OFFSET = 1_000_000  # evaluation episodes (and the baseline's) never reuse a training reset seed
+IL_SEED_OFFSET = 2_000_000  # the imitation phase's baseline episodes neither
+
+# RL Zoo's tuned PPO hyperparameters (rl-baselines3-zoo, hyperparams/ppo.yml), one env here:
+# num_steps = n_envs * n_steps and num_minibatches = num_steps / batch_size keep the same batches.
+TUNED = {
+    "Pendulum-v1": dict(num_steps=4096, num_minibatches=64, gamma=0.9, gae_lambda=0.95, update_epochs=10, learning_rate=1e-3, ent_coef=0.0),
+    "LunarLanderContinuous-v3": dict(num_steps=16384, num_minibatches=256, gamma=0.999, gae_lambda=0.98, update_epochs=4, learning_rate=3e-4, ent_coef=0.01),
+}
+DEFAULTS = dict(num_steps=2048, num_minibatches=32, gamma=0.99, gae_lambda=0.95, update_epochs=10, learning_rate=3e-4, ent_coef=0.0)
+
+
+@dataclass
+class Args:
+    exp_name: str = os.path.basename(__file__)[: -len(".py")]
+    """the name of this experiment"""
+    seed: int = 1
+    """seed of the experiment; training episode e starts from env.reset(seed=seed + e)"""
+    torch_threads: int = 1
+    """torch CPU threads (2 threads collapse when another process shares a 2-core machine)"""
+    capture_video: bool = False
+    """whether to record videos of the agent to `videos/{run_name}` (needs moviepy)"""
+    save_model: bool = False
+    """whether to save a checkpoint to `runs/{run_name}` and evaluate it at the end"""
+    eval_episodes: int = 10
+    """deterministic evaluation episodes after training (with --save-model)"""
+
+    # Algorithm specific arguments (None: RL Zoo's tuned value for env_id, else a generic default)
+    env_id: str = "Pendulum-v1"
+    """the id of the environment (any Gymnasium env with a Box action space)"""
+    total_timesteps: int = 100_000
+    """env steps of the RL phase (the imitation phase's steps come on top, logged as il/env_steps)"""
+    learning_rate: Optional[float] = None
+    """the learning rate of the optimizer (Pendulum 1e-3, Lunar Lander 3e-4)"""
+    num_steps: Optional[int] = None
+    """env steps per rollout (Pendulum 4096, Lunar Lander 16384, else 2048)"""
+    anneal_lr: bool = True
+    """toggle learning rate annealing"""
+    gamma: Optional[float] = None
+    """the discount factor gamma (Pendulum 0.9, Lunar Lander 0.999, else 0.99)"""
+    gae_lambda: Optional[float] = None
+    """the lambda of generalized advantage estimation (Lunar Lander 0.98, else 0.95)"""
+    num_minibatches: Optional[int] = None
+    """minibatches per epoch (rollout / 64 for the tuned envs, else 32)"""
+    update_epochs: Optional[int] = None
+    """epochs per rollout (Lunar Lander 4, else 10)"""
+    norm_adv: bool = True
+    """toggles advantages normalization"""
+    clip_coef: float = 0.2
+    """the surrogate clipping coefficient"""
+    clip_vloss: bool = True
+    """toggles whether or not to use a clipped loss for the value function"""
+    ent_coef: Optional[float] = None
+    """coefficient of the entropy (Lunar Lander 0.01, else 0)"""
+    vf_coef: float = 0.5
+    """coefficient of the value function"""
+    max_grad_norm: float = 0.5
+    """the maximum norm for the gradient clipping"""
+    target_kl: Optional[float] = None
+    """stop the epochs of a rollout early past this approximate KL"""
+    norm_obs: bool = False
+    """normalize observations by running statistics (saved in the checkpoint)"""
+    norm_reward: bool = False
+    """scale rewards by the running standard deviation of the discounted return"""
+    hidden_size: int = 64
+    """units in each of the two hidden layers of actor and critic"""
+
+    # Imitation phase
+    il_steps: int = 20_000
+    """env steps of baseline rollouts for imitation (90 % fit, 10 % held out)"""
+    il_target_mse: float = 1e-3
+    """stop behaviour cloning once the held-out action MSE (policy units) is below this"""
+    il_patience: int = 20
+    """... or after this many epochs without a better held-out MSE"""
+    il_max_epochs: int = 500
+    """... or after this many epochs"""
+    il_batch_size: int = 256
+    """minibatch of behaviour cloning and value pretraining"""
+    il_lr: float = 1e-3
+    """learning rate of behaviour cloning and value pretraining"""
+    il_init_std: float = 0.2
+    """the cloned policy's exploration std (policy units) when RL starts"""
+    il_value_epochs: int = 50
+    """epochs fitting the value function to the baseline's discounted returns"""
+
+    # Baseline regret
+    baseline: str = ""
+    """baseline controller as module:function returning env-unit actions (default: this project's baseline for env_id)"""
+    regret_estimator: Literal["auto", "paired", "unpaired", "off"] = "auto"
+    """paired: a shadow env runs the baseline from each training episode's reset seed; unpaired: the baseline's mean reward per step; auto: paired when the env reproduces a seeded reset"""
+    baseline_eval_episodes: int = 10
+    """episodes measuring the baseline's mean return and reward per step (the unpaired estimator)"""
+
+
+def resolve_hyperparameters(args: Args) -> Args:
+    """Fill every None field with RL Zoo's tuned value for the env, else the generic default."""
+    tuned = TUNED.get(args.env_id, DEFAULTS)
+    for name, value in tuned.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
+    return args
+
+
+def make_env(env_id: str, seed: int, capture_video: bool = False, run_name: str = "") -> gym.Env:
+    """One env (no vector wrapper: episodes are reset explicitly, so there is no autoreset to undo)."""
+    render_mode = "rgb_array" if capture_video else None
+    if project_make_env is not None:
+        env = project_make_env(env_id, seed, render_mode)
+    else:
+        try:
+            env = gym.make(env_id, render_mode=render_mode)
+        except gym.error.Error as err:
+            raise ValueError(f"unknown env id {env_id!r}: {err}") from None
+        env.action_space.seed(seed)
+    if not isinstance(env.action_space, gym.spaces.Box):
+        raise ValueError(f"{env_id} has a {env.action_space} action space; this script needs a continuous (Box) one")
+    if not np.all(np.isfinite(env.action_space.low) & np.isfinite(env.action_space.high)):
+        raise ValueError(f"{env_id} has an unbounded action space {env.action_space}; actions are scaled into bounds")
+    if not isinstance(env.observation_space, gym.spaces.Box) or len(env.observation_space.shape) != 1:
+        raise ValueError(f"{env_id} has observations {env.observation_space}; this script needs a flat Box")
+    if capture_video:
+        env = gym.wrappers.RecordVideo(env, f"videos/{run_name}")
+    return env
+
+
+def load_baseline(spec: str, env_id: str) -> Optional[Callable]:
+    """The baseline `module:function` (a class is instantiated), else this project's one for env_id, else None."""
+    if spec:
+        module_name, sep, attribute = spec.partition(":")
+        if not sep:
+            raise ValueError(f"baseline {spec!r} must look like 'module:function'")
+        try:
+            baseline = getattr(importlib.import_module(module_name), attribute)
+        except (ImportError, AttributeError) as err:
+            raise ValueError(f"cannot load baseline {spec!r}: {err}") from None
+        return baseline() if isinstance(baseline, type) else baseline
+    if project_baseline is None:
+        return None
+    try:
+        return project_baseline(env_id)
+    except ValueError:
+        return None
+
+
+def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """One baseline episode from env.reset(seed=seed): (initial observation, reward of every step)."""
+    if hasattr(baseline, "reset"):
+        baseline.reset()
+    obs, _ = env.reset(seed=seed)
+    first_obs, rewards, done = obs, [], False
+    while not done:
+        action = baseline(obs)
+        if action is None:
+            raise ValueError("the baseline returned None (it only intervenes), so it cannot be measured; use --regret-estimator off")
+        obs, reward, terminated, truncated, _ = env.step(action)
+        rewards.append(float(reward))
+        done = terminated or truncated
+    return first_obs, np.asarray(rewards)
+
+
+def paired_regret(rewards: np.ndarray, baseline_rewards: np.ndarray) -> tuple[float, float]:
+    """Baseline regret of one episode against the baseline's episode from the same initial state.
+
+    Returns (max(0, R^b - R), sum_t max(0, r^b_t - r_t)), the per-step sum being the paper's
+    Definition 1; steps align by index and a finished trajectory earns 0 after its end.
+    """
+    steps = max(len(rewards), len(baseline_rewards))
+    r = np.zeros(steps)
+    r[: len(rewards)] = rewards
+    r_b = np.zeros(steps)
+    r_b[: len(baseline_rewards)] = baseline_rewards
+    return max(0.0, float(r_b.sum() - r.sum())), float(np.maximum(r_b - r, 0.0).sum())
+
+
+def unpaired_regret(rewards: np.ndarray, baseline_reward_per_step: float) -> tuple[float, float]:
+    """Fallback when episodes cannot be paired: the baseline earns b per step.
+
+    Returns (max(0, b L - R), sum_t max(0, b - r_t)); the per-step form overstates the paired one.
+    """
+    rewards = np.asarray(rewards, dtype=np.float64)
+    b = baseline_reward_per_step
+    return max(0.0, b * len(rewards) - float(rewards.sum())), float(np.maximum(b - rewards, 0.0).sum())
+
+
+def to_env_units(action: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """Policy actions live in [-1, 1] (samples are clipped there); the env's in [low, high]."""
+    return low + (np.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (high - low)
+
+
+def to_policy_units(action: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """The baseline speaks env units; everything stored or compared is in [-1, 1]."""
+    return np.clip(2.0 * (np.asarray(action, dtype=np.float64) - low) / (high - low) - 1.0, -1.0, 1.0)
+
+
+class RunningMeanStd:
+    """Running mean and variance of observations (Chan et al.'s parallel update)."""
+
+    def __init__(self, shape: tuple[int, ...]):
+        self.mean, self.var, self.count = np.zeros(shape), np.ones(shape), 1e-4
+
+    def update(self, x: np.ndarray) -> None:
+        x = np.asarray(x, dtype=np.float64).reshape(-1, *self.mean.shape)
+        batch_mean, batch_var, n = x.mean(0), x.var(0), x.shape[0]
+        delta, total = batch_mean - self.mean, self.count + n
+        self.mean = self.mean + delta * n / total
+        self.var = (self.var * self.count + batch_var * n + delta**2 * self.count * n / total) / total
+        self.count = total
+
+    def normalize(self, x: np.ndarray) -> np.ndarray:
+        return np.clip((x - self.mean) / np.sqrt(self.var + 1e-8), -10.0, 10.0).astype(np.float32)
+
+
+def layer_init(layer: nn.Linear, std: float = np.sqrt(2), bias_const: float = 0.0) -> nn.Linear:
+    torch.nn.init.orthogonal_(layer.weight, std)
+    torch.nn.init.constant_(layer.bias, bias_const)
+    return layer
+
+
+class Agent(nn.Module):
+    """Gaussian policy with a state-independent log-std, and a separate value network."""
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden_size: int):
+        super().__init__()
+        self.critic = nn.Sequential(
+            layer_init(nn.Linear(obs_dim, hidden_size)),
+            nn.Tanh(),
+            layer_init(nn.Linear(hidden_size, hidden_size)),
+            nn.Tanh(),
+            layer_init(nn.Linear(hidden_size, 1), std=1.0),
+        )
+        self.actor_mean = nn.Sequential(
+            layer_init(nn.Linear(obs_dim, hidden_size)),
+            nn.Tanh(),
+            layer_init(nn.Linear(hidden_size, hidden_size)),
+            nn.Tanh(),
+            layer_init(nn.Linear(hidden_size, act_dim), std=0.01),
+        )
+        self.actor_logstd = nn.Parameter(torch.zeros(1, act_dim))
+
+    def get_value(self, x: torch.Tensor) -> torch.Tensor:
+        return self.critic(x)
+
+    def get_action_and_value(self, x: torch.Tensor, action: Optional[torch.Tensor] = None):
+        action_mean = self.actor_mean(x)
+        probs = Normal(action_mean, self.actor_logstd.expand_as(action_mean).exp())
+        if action is None:
+            action = probs.sample()
+        return action, probs.log_prob(action).sum(1), probs.entropy().sum(1), self.critic(x)
+
+
+def collect_baseline_data(env: gym.Env, baseline: Callable, steps: int, seed: int, gamma: float) -> dict:
+    """At least `steps` env steps of whole baseline episodes: observations, actions in policy units,
+    discounted returns-to-go, and the episodes' returns."""
+    low, high = env.action_space.low, env.action_space.high
+    obs_list, action_list, return_list, episode_returns, episode = [], [], [], [], 0
+    while len(obs_list) < steps:
+        if hasattr(baseline, "reset"):
+            baseline.reset()
+        obs, _ = env.reset(seed=seed + IL_SEED_OFFSET + episode)
+        rewards, done = [], False
+        while not done:
+            action = baseline(obs)
+            if action is None:
+                raise ValueError("the baseline returned None (it only intervenes); imitation needs its actions everywhere")
+            obs_list.append(obs)
+            action_list.append(to_policy_units(action, low, high))
+            obs, reward, terminated, truncated, _ = env.step(action)
+            rewards.append(float(reward))
+            done = terminated or truncated
+        returns_to_go, running = np.zeros(len(rewards)), 0.0
+        for t in reversed(range(len(rewards))):  # Monte Carlo; a truncated tail is cut short, not bootstrapped
+            running = rewards[t] + gamma * running
+            returns_to_go[t] = running
+        return_list.extend(returns_to_go)
+        episode_returns.append(sum(rewards))
+        episode += 1
+    return {
+        "obs": np.asarray(obs_list, dtype=np.float32),
+        "actions": np.asarray(action_list, dtype=np.float32),
+        "returns": np.asarray(return_list, dtype=np.float32),
+        "episode_returns": episode_returns,
+    }
+
+
+def imitate(agent: Agent, obs: np.ndarray, actions: np.ndarray, returns: np.ndarray, args: Args, writer, rng) -> dict:
+    """Behaviour cloning of the policy mean with held-out early stopping, then the exploration std,
+    then the value function fitted to the baseline's returns (so the first update is not destructive)."""
+    n = len(obs)
+    order = rng.permutation(n)
+    held_out, fit = order[: max(1, n // 10)], order[max(1, n // 10) :]
+    x, y, g = torch.from_numpy(obs), torch.from_numpy(actions), torch.from_numpy(returns).unsqueeze(1)
+    optimizer = optim.Adam(agent.actor_mean.parameters(), lr=args.il_lr)
+    best_mse, best_state, stale, epoch = float("inf"), None, 0, 0
+    for epoch in range(1, args.il_max_epochs + 1):
+        for start in range(0, len(fit), args.il_batch_size):
+            idx = fit[start : start + args.il_batch_size]
+            bc_loss = ((agent.actor_mean(x[idx]) - y[idx]) ** 2).mean()
+            optimizer.zero_grad()
+            bc_loss.backward()
+            optimizer.step()
+        rng.shuffle(fit)
+        with torch.no_grad():
+            mse = ((agent.actor_mean(x[held_out]) - y[held_out]) ** 2).mean().item()
+        writer.add_scalar("il/bc_loss", bc_loss.item(), epoch)
+        writer.add_scalar("il/action_mse", mse, epoch)
+        if mse < best_mse:
+            best_mse, best_state, stale = mse, {k: v.clone() for k, v in agent.actor_mean.state_dict().items()}, 0
+        else:
+            stale += 1
+        if best_mse < args.il_target_mse or stale >= args.il_patience:
+            break
+    agent.actor_mean.load_state_dict(best_state)
+    with torch.no_grad():
+        agent.actor_logstd.fill_(float(np.log(args.il_init_std)))
+
+    value_optimizer = optim.Adam(agent.critic.parameters(), lr=args.il_lr)
+    for _ in range(args.il_value_epochs):
+        for start in range(0, n, args.il_batch_size):
+            idx = order[start : start + args.il_batch_size]
+            value_loss = ((agent.critic(x[idx]) - g[idx]) ** 2).mean()
+            value_optimizer.zero_grad()
+            value_loss.backward()
+            value_optimizer.step()
+        rng.shuffle(order)
+    writer.add_scalar("il/value_loss", value_loss.item(), 0)
+    return {"epochs": epoch, "action_mse": best_mse, "value_loss": value_loss.item()}
+
+
+def save_checkpoint(path: str, env_id: str, env: gym.Env, agent: Agent, obs_rms: Optional[RunningMeanStd], args: Args) -> None:
+    """Weights, observation statistics, spaces and hyperparameters."""
+    torch.save(
+        {
+            "format": CHECKPOINT_FORMAT,
+            "env_id": env_id,
+            "obs_dim": int(env.observation_space.shape[0]),
+            "action_low": env.action_space.low.tolist(),
+            "action_high": env.action_space.high.tolist(),
+            "hidden_size": args.hidden_size,
+            "agent": agent.state_dict(),
+            "obs_mean": None if obs_rms is None else torch.from_numpy(obs_rms.mean),
+            "obs_var": None if obs_rms is None else torch.from_numpy(obs_rms.var),
+            "args": vars(args),
+        },
+        path,
+    )
+
+
+def load_checkpoint(path: str) -> dict:
+    """Read a checkpoint written by save_checkpoint; ValueError if it is not one."""
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise
+    except Exception as err:  # torch raises many types for a damaged file
+        raise ValueError(f"{path} is not a readable checkpoint ({type(err).__name__}: {err})") from None
+    if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path} is not a {CHECKPOINT_FORMAT} checkpoint")
+    return checkpoint
+
+
+def evaluate(path: str, env_id: str, episodes: int, seed: int) -> list[float]:
+    """Returns of the checkpoint's mean action, episode i reset with seed + EVAL_SEED_OFFSET + i."""
+    env = make_env(env_id, seed)
+    checkpoint = load_checkpoint(path)
+    obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    if checkpoint["obs_dim"] != obs_dim or len(checkpoint["action_low"]) != act_dim:
+        raise ValueError(f"checkpoint expects {checkpoint['obs_dim']} observations and {len(checkpoint['action_low'])} actions ({checkpoint['env_id']}); this env has {obs_dim} and {act_dim}")
+    agent = Agent(obs_dim, act_dim, checkpoint["hidden_size"])
+    try:
+        agent.load_state_dict(checkpoint["agent"])
+    except RuntimeError as err:
+        raise ValueError(f"checkpoint weights do not fit: {err}") from None
+    obs_rms = None
+    if checkpoint["obs_mean"] is not None:
+        obs_rms = RunningMeanStd((obs_dim,))
+        obs_rms.mean, obs_rms.var = checkpoint["obs_mean"].numpy(), checkpoint["obs_var"].numpy()
+    low, high = env.action_space.low, env.action_space.high
+    returns = []
+    for i in range(episodes):
+        obs, _ = env.reset(seed=seed + EVAL_SEED_OFFSET + i)
+        episode_return, done = 0.0, False
+        while not done:
+            x = obs_rms.normalize(obs) if obs_rms is not None else obs.astype(np.float32)
+            with torch.inference_mode():
+                action = agent.actor_mean(torch.from_numpy(x).unsqueeze(0))[0].numpy()
+            obs, reward, terminated, truncated, _ = env.step(to_env_units(action, low, high))
+            episode_return += float(reward)
+            done = terminated or truncated
+        returns.append(episode_return)
+    env.close()
+    return returns
+
+
+if __name__ == "__main__":
+    args = resolve_hyperparameters(tyro.cli(Args))
+    batch_size = args.num_steps
+    minibatch_size = batch_size // args.num_minibatches
+    num_iterations = max(1, args.total_timesteps // batch_size)
+    run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
+
+    # TRY NOT TO MODIFY: seeding
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    torch.set_num_threads(args.torch_threads)
+    rng = np.random.default_rng(args.seed)
+
+    # env setup; bad input ends here with one line, before anything is written
+    try:
+        env = make_env(args.env_id, args.seed, args.capture_video, run_name)
+        baseline = load_baseline(args.baseline, args.env_id)
+        if baseline is None:
+            raise ValueError(f"PPO+IL imitates a baseline and {args.env_id} has none; pass --baseline module:function")
+        if minibatch_size < 1:
+            raise ValueError(f"--num-minibatches {args.num_minibatches} exceeds --num-steps {args.num_steps}")
+    except ValueError as err:
+        raise SystemExit(f"{args.exp_name}: error: {err}")
+    obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    low, high = env.action_space.low, env.action_space.high
+
+    writer = SummaryWriter(f"runs/{run_name}")
+    writer.add_text(
+        "hyperparameters",
+        "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])),
+    )
+    agent = Agent(obs_dim, act_dim, args.hidden_size)
+    shadow_env = make_env(args.env_id, args.seed)  # runs the baseline beside the training env
+
+    # Imitation phase: the baseline acts, so these steps carry no regret; they are counted apart
+    try:
+        data = collect_baseline_data(shadow_env, baseline, args.il_steps, args.seed, args.gamma)
+    except ValueError as err:
+        raise SystemExit(f"{args.exp_name}: error: {err}")
+    obs_rms = RunningMeanStd((obs_dim,)) if args.norm_obs else None
+    if obs_rms is not None:
+        obs_rms.update(data["obs"])
+    il_obs = obs_rms.normalize(data["obs"]) if obs_rms is not None else data["obs"]
+    il = imitate(agent, il_obs, data["actions"], data["returns"], args, writer, rng)
+    writer.add_scalar("il/env_steps", len(data["obs"]), 0)
+    print(f"imitation: {len(data['obs'])} baseline steps, {il['epochs']} epochs, held-out action MSE {il['action_mse']:.2e}")
+
+    # Baseline measurement on the evaluation seeds, so it compares with eval/episodic_return
+    estimator, baseline_reward_per_step, baseline_seconds = "off", 0.0, 0.0
+    if args.regret_estimator != "off":
+        try:
+            traces = [baseline_rollout(shadow_env, baseline, args.seed + EVAL_SEED_OFFSET + i)[1] for i in range(args.baseline_eval_episodes)]
+        except ValueError as err:
+            raise SystemExit(f"{args.exp_name}: error: {err}")
+        baseline_return = float(np.mean([t.sum() for t in traces]))
+        baseline_reward_per_step = float(sum(t.sum() for t in traces) / sum(len(t) for t in traces))
+        writer.add_scalar("charts/baseline_return", baseline_return, 0)
+        writer.add_scalar("charts/baseline_reward_per_step", baseline_reward_per_step, 0)
+        print(f"baseline: return {baseline_return:.1f}, reward per step {baseline_reward_per_step:.3f}")
+        estimator = {"off": "off", "unpaired": "unpaired"}.get(args.regret_estimator, "paired")
+    baseline_regret = baseline_regret_per_step = 0.0
+    if args.save_model:  # the cloned policy, evaluated like the final one
+        os.makedirs(f"runs/{run_name}", exist_ok=True)
+        il_path = f"runs/{run_name}/{args.exp_name}_cloned.cleanrl_model"
+        save_checkpoint(il_path, args.env_id, env, agent, obs_rms, args)
+        il_returns = evaluate(il_path, args.env_id, args.eval_episodes, args.seed)
+        writer.add_scalar("il/eval_return", float(np.mean(il_returns)), 0)
+        print(f"cloned policy: mean return {np.mean(il_returns):.1f}")
+
+    optimizer = optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)
+
+    # ALGO Logic: Storage setup
+    obs_buf = torch.zeros((args.num_steps, obs_dim))
+    actions = torch.zeros((args.num_steps, act_dim))
+    logprobs = torch.zeros(args.num_steps)
+    rewards = torch.zeros(args.num_steps)
+    dones = torch.zeros(args.num_steps)
+    values = torch.zeros(args.num_steps)
+    return_rms, discounted_return = RunningMeanStd(()), 0.0  # for --norm-reward
+
+    # TRY NOT TO MODIFY: start the game
+    global_step = 0
+    start_time = time.time()
+    episode, episode_rewards = 0, []
+    raw_obs, _ = env.reset(seed=args.seed)
+    if estimator == "paired":
+        t0 = time.time()
+        baseline_first_obs, baseline_rewards = baseline_rollout(shadow_env, baseline, args.seed)
+        baseline_seconds += time.time() - t0
+        if not np.array_equal(baseline_first_obs, raw_obs):  # the env ignores its reset seed: pairing is impossible
+            if args.regret_estimator == "paired":
+                raise SystemExit(f"{args.exp_name}: error: {args.env_id} does not reproduce a seeded reset; use --regret-estimator unpaired")
+            estimator = "unpaired"
+    if estimator != "off":
+        print(f"baseline regret estimator: {estimator}")
+        writer.add_text("baseline_regret_estimator", estimator)
+
+    def observe(raw: np.ndarray) -> torch.Tensor:
+        if obs_rms is None:
+            return torch.as_tensor(raw, dtype=torch.float32)
+        return torch.from_numpy(obs_rms.normalize(raw))
+
+    next_obs = observe(raw_obs)
+    next_done = 0.0
+    for iteration in range(1, num_iterations + 1):
+        # Annealing the rate if instructed to do so.
+        if args.anneal_lr:
+            frac = 1.0 - (iteration - 1.0) / num_iterations
+            optimizer.param_groups[0]["lr"] = frac * args.learning_rate
+
+        for step in range(0, args.num_steps):
+            global_step += 1
+            obs_buf[step] = next_obs
+            dones[step] = next_done
+
+            # ALGO LOGIC: action logic
+            with torch.no_grad():
+                action, logprob, _, value = agent.get_action_and_value(next_obs.unsqueeze(0))
+                values[step] = value.flatten()
+            actions[step] = action[0]
+            logprobs[step] = logprob[0]
+
+            # TRY NOT TO MODIFY: execute the game and log data.
+            raw_obs, reward, terminated, truncated, _ = env.step(to_env_units(action[0].numpy(), low, high))
+            episode_rewards.append(float(reward))
+            if obs_rms is not None:
+                obs_rms.update(raw_obs)
+            if args.norm_reward:
+                discounted_return = discounted_return * args.gamma + reward
+                return_rms.update(np.array([discounted_return]))
+                reward = reward / np.sqrt(return_rms.var + 1e-8)
+            if truncated and not terminated:
+                # Bootstrap through time-limit truncation: the cut-off future is worth V(s_T)
+                with torch.no_grad():
+                    reward += args.gamma * agent.get_value(observe(raw_obs).unsqueeze(0)).item()
+            rewards[step] = float(reward)
+            next_done = float(terminated or truncated)
+
+            if terminated or truncated:
+                episode_return = float(np.sum(episode_rewards))
+                print(f"global_step={global_step}, episodic_return={episode_return:.1f}")
+                writer.add_scalar("charts/episodic_return", episode_return, global_step)
+                writer.add_scalar("charts/episodic_length", len(episode_rewards), global_step)
+                if estimator != "off":
+                    if estimator == "paired":
+                        regret, regret_per_step = paired_regret(np.asarray(episode_rewards), baseline_rewards)
+                    else:
+                        regret, regret_per_step = unpaired_regret(np.asarray(episode_rewards), baseline_reward_per_step)
+                    baseline_regret += regret
+                    baseline_regret_per_step += regret_per_step
+                    writer.add_scalar("charts/baseline_regret", baseline_regret, global_step)
+                    writer.add_scalar("charts/baseline_regret_per_step", baseline_regret_per_step, global_step)
+                episode, episode_rewards, discounted_return = episode + 1, [], 0.0
+                raw_obs, _ = env.reset(seed=args.seed + episode)
+                if estimator == "paired":
+                    t0 = time.time()
+                    _, baseline_rewards = baseline_rollout(shadow_env, baseline, args.seed + episode)
+                    baseline_seconds += time.time() - t0
+            next_obs = observe(raw_obs)
+
+        # bootstrap value if not done
+        with torch.no_grad():
+            next_value = agent.get_value(next_obs.unsqueeze(0)).reshape(1)
+            advantages = torch.zeros_like(rewards)
+            lastgaelam = 0
+            for t in reversed(range(args.num_steps)):
+                if t == args.num_steps - 1:
+                    nextnonterminal = 1.0 - next_done
+                    nextvalues = next_value
+                else:
+                    nextnonterminal = 1.0 - dones[t + 1]
+                    nextvalues = values[t + 1]
+                delta = rewards[t] + args.gamma * nextvalues * nextnonterminal - values[t]
+                advantages[t] = lastgaelam = delta + args.gamma * args.gae_lambda * nextnonterminal * lastgaelam
+            returns = advantages + values
+
+        # Optimizing the policy and value network
+        b_inds = np.arange(batch_size)
+        clipfracs = []
+        for epoch in range(args.update_epochs):
+            rng.shuffle(b_inds)
+            for start in range(0, batch_size, minibatch_size):
+                mb_inds = b_inds[start : start + minibatch_size]
+
+                _, newlogprob, entropy, newvalue = agent.get_action_and_value(obs_buf[mb_inds], actions[mb_inds])
+                logratio = newlogprob - logprobs[mb_inds]
+                ratio = logratio.exp()
+
+                with torch.no_grad():
+                    # calculate approx_kl http://joschu.net/blog/kl-approx.html
+                    old_approx_kl = (-logratio).mean()
+                    approx_kl = ((ratio - 1) - logratio).mean()
+                    clipfracs += [((ratio - 1.0).abs() > args.clip_coef).float().mean().item()]
+
+                mb_advantages = advantages[mb_inds]
+                if args.norm_adv:
+                    mb_advantages = (mb_advantages - mb_advantages.mean()) / (mb_advantages.std() + 1e-8)
+
+                # Policy loss
+                pg_loss1 = -mb_advantages * ratio
+                pg_loss2 = -mb_advantages * torch.clamp(ratio, 1 - args.clip_coef, 1 + args.clip_coef)
+                pg_loss = torch.max(pg_loss1, pg_loss2).mean()
+
+                # Value loss
+                newvalue = newvalue.view(-1)
+                if args.clip_vloss:
+                    v_loss_unclipped = (newvalue - returns[mb_inds]) ** 2
+                    v_clipped = values[mb_inds] + torch.clamp(newvalue - values[mb_inds], -args.clip_coef, args.clip_coef)
+                    v_loss_clipped = (v_clipped - returns[mb_inds]) ** 2
+                    v_loss = 0.5 * torch.max(v_loss_unclipped, v_loss_clipped).mean()
+                else:
+                    v_loss = 0.5 * ((newvalue - returns[mb_inds]) ** 2).mean()
+
+                entropy_loss = entropy.mean()
+                loss = pg_loss - args.ent_coef * entropy_loss + v_loss * args.vf_coef
+
+                optimizer.zero_grad()
+                loss.backward()
+                nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
+                optimizer.step()
+
+            if args.target_kl is not None and approx_kl > args.target_kl:
+                break
+
+        y_pred, y_true = values.numpy(), returns.numpy()
+        var_y = np.var(y_true)
+        explained_var = np.nan if var_y == 0 else 1 - np.var(y_true - y_pred) / var_y
+
+        # TRY NOT TO MODIFY: record rewards for plotting purposes
+        writer.add_scalar("charts/learning_rate", optimizer.param_groups[0]["lr"], global_step)
+        writer.add_scalar("losses/value_loss", v_loss.item(), global_step)
+        writer.add_scalar("losses/policy_loss", pg_loss.item(), global_step)
+        writer.add_scalar("losses/entropy", entropy_loss.item(), global_step)
+        writer.add_scalar("losses/old_approx_kl", old_approx_kl.item(), global_step)
+        writer.add_scalar("losses/approx_kl", approx_kl.item(), global_step)
+        writer.add_scalar("losses/clipfrac", np.mean(clipfracs), global_step)
+        writer.add_scalar("losses/explained_variance", explained_var, global_step)
+        sps = int(global_step / (time.time() - start_time))
+        print("SPS:", sps)
+        writer.add_scalar("charts/SPS", sps, global_step)
+        writer.add_scalar("charts/baseline_rollout_seconds", baseline_seconds, global_step)
+
+    if args.save_model:
+        model_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
+        save_checkpoint(model_path, args.env_id, env, agent, obs_rms, args)
+        print(f"model saved to {model_path}")
+        episodic_returns = evaluate(model_path, args.env_id, args.eval_episodes, args.seed)
+        for idx, episodic_return in enumerate(episodic_returns):
+            writer.add_scalar("eval/episodic_return", episodic_return, idx)
+        print(f"eval: mean return {np.mean(episodic_returns):.1f} over {len(episodic_returns)} episodes")
+
+    env.close()
+    writer.close()

@@ -1,0 +1,180 @@
+"""ppo_il.py and trpo_il.py: TRPO's mathematics, the imitation phase, and short end-to-end runs."""
+
+import os
+import shutil
+
+import numpy as np
+import pytest
+import torch
+from torch.func import functional_call
+
+from conftest import ROOT, load_script
+from test_sac_script import run_script, scalars
+
+trpo = load_script("trpo_il")
+ppo = load_script("ppo_il")
+
+
+def test_conjugate_gradient_solves_a_positive_definite_system():
+    rng = np.random.default_rng(0)
+    m = rng.normal(size=(12, 12))
+    a = torch.tensor(m @ m.T + 0.5 * np.eye(12))
+    b = torch.tensor(rng.normal(size=12))
+    x = trpo.conjugate_gradient(lambda v: a @ v, b, max_steps=40, residual_tol=1e-20)
+    np.testing.assert_allclose(x.numpy(), np.linalg.solve(a.numpy(), b.numpy()), rtol=1e-8, atol=1e-8)
+
+
+def test_fisher_vector_product_equals_the_explicit_fisher_matrix():
+    torch.manual_seed(0)
+    agent = trpo.Agent(obs_dim=2, act_dim=2, hidden_size=3).double()
+    with torch.no_grad():
+        agent.actor_logstd.copy_(torch.tensor([[-0.3, 0.4]]))
+    obs = torch.randn(7, 2, dtype=torch.float64)
+    names = ["actor_mean." + n for n, _ in agent.actor_mean.named_parameters()] + ["actor_logstd"]
+    params = trpo.policy_params(agent)
+    shapes = [p.shape for p in params]
+    theta0 = torch.nn.utils.parameters_to_vector(params).detach()
+    old_mean, old_std = agent.actor_mean(obs).detach(), agent.actor_logstd.exp().detach()
+
+    def mean_kl(theta):  # KL(pi_old || pi_theta) for diagonal Gaussians, written out
+        chunks, i = {}, 0
+        for name, shape in zip(names, shapes):
+            chunks[name] = theta[i : i + shape.numel()].view(shape)
+            i += shape.numel()
+        sub = {k.removeprefix("actor_mean."): v for k, v in chunks.items() if k.startswith("actor_mean.")}
+        mean = functional_call(agent.actor_mean, sub, (obs,))
+        std = chunks["actor_logstd"].exp()
+        kl = torch.log(std / old_std) + (old_std**2 + (old_mean - mean) ** 2) / (2 * std**2) - 0.5
+        return kl.sum(1).mean()
+
+    fisher = torch.autograd.functional.hessian(mean_kl, theta0)
+    v = torch.randn_like(theta0)
+    got = trpo.fisher_vector_product(agent, obs, v, damping=0.1)
+    torch.testing.assert_close(got, fisher @ v + 0.1 * v, rtol=1e-9, atol=1e-9)
+
+
+def test_trpo_step_respects_the_trust_region_and_improves_the_surrogate():
+    torch.manual_seed(1)
+    agent = trpo.Agent(obs_dim=3, act_dim=2, hidden_size=16)
+    obs = torch.randn(512, 3)
+    with torch.no_grad():
+        dist = trpo.policy_distribution(agent, obs)
+        actions = dist.sample()
+        old_logprobs = dist.log_prob(actions).sum(1)
+        before = trpo.policy_distribution(agent, obs)
+        before = torch.distributions.Normal(before.loc.clone(), before.scale.clone())
+    advantages = (actions[:, 0] - actions[:, 1]) + 0.1 * torch.randn(512)  # learnable: prefer a0 > a1
+    advantages = (advantages - advantages.mean()) / advantages.std()
+    for max_kl in (0.01, 0.001):
+        args = trpo.Args(max_kl=max_kl)
+        result = trpo.trpo_step(agent, obs, actions, old_logprobs, advantages, args)
+        assert result["accepted"]
+        with torch.no_grad():
+            measured = torch.distributions.kl_divergence(before, trpo.policy_distribution(agent, obs)).sum(1).mean().item()
+        assert 0.0 < measured <= max_kl * (1 + 1e-6)
+        assert result["objective"] > 0.0  # surrogate at the old policy is E[A] = 0
+        with torch.no_grad():  # the next step starts from here
+            dist = trpo.policy_distribution(agent, obs)
+            old_logprobs = dist.log_prob(actions).sum(1)
+            before = torch.distributions.Normal(dist.loc.clone(), dist.scale.clone())
+
+
+def test_line_search_keeps_the_old_policy_when_nothing_improves():
+    torch.manual_seed(2)
+    agent = trpo.Agent(obs_dim=3, act_dim=1, hidden_size=8)
+    obs = torch.randn(64, 3)
+    with torch.no_grad():
+        dist = trpo.policy_distribution(agent, obs)
+        actions = dist.sample()
+        old_logprobs = dist.log_prob(actions).sum(1)
+    start = torch.nn.utils.parameters_to_vector(trpo.policy_params(agent)).detach().clone()
+    result = trpo.trpo_step(agent, obs, actions, old_logprobs, torch.zeros(64), trpo.Args())  # zero advantages
+    assert not result["accepted"]
+    torch.testing.assert_close(torch.nn.utils.parameters_to_vector(trpo.policy_params(agent)), start)
+
+
+@pytest.mark.parametrize("script", [ppo, trpo], ids=["ppo_il", "trpo_il"])
+def test_imitation_clones_the_pendulum_baseline(script, tmp_path):
+    from torch.utils.tensorboard import SummaryWriter
+
+    from envs import BASELINES, make_env
+
+    args = script.resolve_hyperparameters(script.Args(il_steps=6000, il_max_epochs=150, il_init_std=0.3))
+    data = script.collect_baseline_data(make_env("Pendulum-v1"), BASELINES["Pendulum-v1"], 6000, 0, args.gamma)
+    assert len(data["obs"]) == 6000  # 30 whole episodes of 200 steps
+    np.testing.assert_allclose(data["actions"], np.array([BASELINES["Pendulum-v1"](o) for o in data["obs"]]) / 2.0, atol=1e-6)
+    torch.manual_seed(0)
+    agent = script.Agent(3, 1, 64)
+    x = torch.from_numpy(data["obs"])
+    with torch.no_grad():
+        mse_before = ((agent.actor_mean(x) - torch.from_numpy(data["actions"])) ** 2).mean().item()
+        value_error_before = ((agent.critic(x)[:, 0] - torch.from_numpy(data["returns"])) ** 2).mean().item()
+    writer = SummaryWriter(str(tmp_path))
+    result = script.imitate(agent, data["obs"], data["actions"], data["returns"], args, writer, np.random.default_rng(0))
+    writer.close()
+    assert result["action_mse"] < 5e-3 < mse_before  # held-out MSE in policy units^2 (torque / 2 N m)
+    assert agent.actor_logstd.exp().detach().numpy() == pytest.approx(0.3)
+    with torch.no_grad():
+        value_error = ((agent.critic(x)[:, 0] - torch.from_numpy(data["returns"])) ** 2).mean().item()
+    assert value_error < 0.2 * value_error_before
+
+
+SHORT = {
+    "ppo_il": ["--num-steps", "256", "--num-minibatches", "4", "--update-epochs", "2"],
+    "trpo_il": ["--num-steps", "256", "--n-critic-updates", "2"],
+}
+
+
+@pytest.mark.parametrize("name", ["ppo_il", "trpo_il"])
+def test_end_to_end_logs_saves_and_evaluates(name, tmp_path):
+    args = [*SHORT[name], "--total-timesteps", "512", "--il-steps", "600", "--il-max-epochs", "20",
+            "--hidden-size", "16", "--save-model", "--eval-episodes", "2", "--baseline-eval-episodes", "2"]  # fmt: skip
+    out = run_script(ROOT / f"{name}.py", args, tmp_path)
+    assert out.returncode == 0, out.stderr
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    logged = scalars(run_dir)
+    for key in ["charts/episodic_return", "charts/SPS", "charts/baseline_regret", "charts/baseline_regret_per_step",
+                "charts/baseline_return", "losses/value_loss", "losses/explained_variance", "il/bc_loss",
+                "il/action_mse", "il/env_steps", "il/eval_return", "eval/episodic_return"]:  # fmt: skip
+        assert key in logged, key
+        assert np.all(np.isfinite(logged[key])), key
+    assert logged["il/env_steps"] == [600.0]
+    assert len(logged["charts/SPS"]) == 2  # two rollouts of 256 steps
+    model = next(p for p in run_dir.glob("*.cleanrl_model") if not p.name.endswith("_cloned.cleanrl_model"))
+    script = load_script(name)
+    returns = script.evaluate(str(model), "Pendulum-v1", 2, 1)
+    np.testing.assert_allclose(returns, logged["eval/episodic_return"], rtol=1e-5)
+    broken = tmp_path / "broken.cleanrl_model"
+    broken.write_bytes(model.read_bytes()[:100])
+    with pytest.raises(ValueError, match="not a readable checkpoint"):
+        script.evaluate(str(broken), "Pendulum-v1", 1, 1)
+
+
+@pytest.mark.parametrize("name", ["ppo_il", "trpo_il"])
+def test_script_copied_alone_runs_with_a_user_baseline(name, tmp_path):
+    shutil.copy(ROOT / f"{name}.py", tmp_path)
+    (tmp_path / "their_controller.py").write_text(
+        "import numpy as np\ndef damp(obs):\n    return np.array([-1.0 * obs[2]], dtype=np.float32)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    args = [*SHORT[name], "--env-id", "Pendulum-v1", "--baseline", "their_controller:damp", "--total-timesteps", "256",
+            "--il-steps", "400", "--il-max-epochs", "5", "--hidden-size", "16", "--baseline-eval-episodes", "1"]  # fmt: skip
+    out = run_script(tmp_path / f"{name}.py", args, tmp_path, env)
+    assert out.returncode == 0, out.stderr
+    assert "baseline regret estimator: paired" in out.stdout
+
+
+@pytest.mark.parametrize("name", ["ppo_il", "trpo_il"])
+def test_unknown_env_is_a_one_line_error(name, tmp_path):
+    out = run_script(ROOT / f"{name}.py", ["--env-id", "NoSuchEnv-v0"], tmp_path)
+    assert out.returncode != 0 and "unknown env id 'NoSuchEnv-v0'" in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1
+
+
+def test_zoo_hyperparameters_fill_only_what_the_user_left_unset():
+    args = ppo.resolve_hyperparameters(ppo.Args(env_id="LunarLanderContinuous-v3", gamma=0.95))
+    assert (args.gamma, args.num_steps, args.gae_lambda, args.ent_coef) == (0.95, 16384, 0.98, 0.01)
+    args = trpo.resolve_hyperparameters(trpo.Args(env_id="Pendulum-v1"))
+    assert (args.gamma, args.n_critic_updates, args.num_steps, args.norm_obs) == (0.9, 15, 2048, False)
+    args = trpo.resolve_hyperparameters(trpo.Args(env_id="MountainCarContinuous-v0"))
+    assert (args.gamma, args.n_critic_updates) == (0.99, 10)
