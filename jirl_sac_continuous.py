@@ -27,6 +27,7 @@ except ImportError:
 
 CHECKPOINT_FORMAT = "jirl-sac-checkpoint-v1"
 EVAL_SEED_OFFSET = 1_000_000  # evaluation episodes (and the baseline's) never reuse a training reset seed
+GUIDANCE_C_END = 1e-6  # where the geometric guidance schedule ends before C drops to 0
 BASELINE_ACTION_EPS = 1e-3  # a^b is clipped into [-1 + eps, 1 - eps], where the tanh-squashed density is finite
 
 
@@ -90,8 +91,10 @@ class Args:
     """the gate's scaling factor C (Alg. 3): larger keeps the baseline in control longer"""
     gate_k: int = 5
     """the gate's window K (Alg. 3): steps whose densities and divergences are multiplied"""
-    guidance_steps: int = 10_000
-    """C decays linearly to 0 over this many steps, handing control to the agent (0: the paper's constant C)"""
+    guidance_steps: Optional[int] = None
+    """C decays over this many steps and is 0 after, handing control to the agent (default: 3/4 of --total-timesteps; 0: the paper's constant C)"""
+    guidance_schedule: Literal["geometric", "linear"] = "geometric"
+    """geometric: log C falls linearly to log 1e-6, then C = 0; linear: C falls linearly to 0"""
     penalty_sigma2: float = 0.1
     """the penalized reward's variance sigma^2 (Alg. 2), in policy action units [-1, 1]"""
     switch_penalty: float = -1.0
@@ -227,6 +230,22 @@ def divergence(mean: np.ndarray, log_std: np.ndarray, baseline_action: np.ndarra
     """
     entropy = np.sum(0.5 * math.log(2.0 * math.pi * math.e) + log_std + log1m_tanh_sq(mean))
     return float(entropy + np.linalg.norm(baseline_action - np.tanh(mean)))
+
+
+def guidance_c(c: float, step: int, guidance_steps: int, schedule: str) -> float:
+    """The gate's C at `step`: constant without guidance, else annealed to 0 at `guidance_steps`.
+
+    The gate compares log densities, so a linear fall of C changes the decision only near its end;
+    the geometric schedule moves log C at a constant rate, handing control over gradually.
+    """
+    if guidance_steps == 0:
+        return c
+    progress = step / guidance_steps
+    if progress >= 1.0:
+        return 0.0
+    if schedule == "linear":
+        return c * (1.0 - progress)
+    return c * (GUIDANCE_C_END / c) ** progress if c > 0 else 0.0
 
 
 def log_positive_rho(rho: float) -> float:
@@ -439,6 +458,8 @@ if __name__ == "__main__":
         baseline = load_baseline(args.baseline, args.env_id)
         if baseline is None:
             raise ValueError(f"JIRL needs a baseline and {args.env_id} has none; pass --baseline module:function")
+        if args.guidance_steps is None:
+            args.guidance_steps = 3 * args.total_timesteps // 4
         if args.penalty_sigma2 <= 0 or args.gate_c < 0 or args.gate_k < 0 or args.guidance_steps < 0:
             raise ValueError("--penalty-sigma2 must be > 0; --gate-c, --gate-k and --guidance-steps must be >= 0")
     except ValueError as err:
@@ -538,7 +559,7 @@ if __name__ == "__main__":
             else:  # Alg. 1, line 4: the gate (Alg. 3)
                 log_prob_baseline = squashed_log_prob(mean, log_std, baseline_action)
                 rho = divergence(mean, log_std, baseline_action)
-                c = args.gate_c * max(0.0, 1.0 - global_step / args.guidance_steps) if args.guidance_steps else args.gate_c
+                c = guidance_c(args.gate_c, global_step, args.guidance_steps, args.guidance_schedule)
                 rl_acts = gate.decide(log_prob_baseline, rho, c)
                 gate_log_prob_sum += log_prob_baseline
                 gate_log_rho_sum += log_positive_rho(rho)

@@ -175,3 +175,15 @@ def test_scripts_compute_the_same_regret(rewards, baseline_rewards):
     for script in others:
         assert script.paired_regret(rewards, baseline_rewards) == sac.paired_regret(rewards, baseline_rewards)
         assert script.unpaired_regret(rewards, 0.3) == sac.unpaired_regret(rewards, 0.3)
+
+
+def test_guidance_schedules_hand_control_over_by_the_end():
+    assert jirl.guidance_c(10.0, 5_000, 0, "geometric") == 10.0  # no guidance: the paper's constant C
+    assert jirl.guidance_c(10.0, 0, 1000, "linear") == 10.0
+    assert jirl.guidance_c(10.0, 500, 1000, "linear") == pytest.approx(5.0)
+    halfway = jirl.guidance_c(10.0, 500, 1000, "geometric")
+    assert math.log(halfway) == pytest.approx(0.5 * (math.log(10.0) + math.log(jirl.GUIDANCE_C_END)))
+    for schedule in ("linear", "geometric"):
+        values = [jirl.guidance_c(10.0, t, 1000, schedule) for t in range(0, 1200, 50)]
+        assert values[0] == 10.0 and values[-1] == 0.0 and jirl.guidance_c(10.0, 1000, 1000, schedule) == 0.0
+        assert all(a > b for a, b in zip(values, values[1:]) if a > 0)
