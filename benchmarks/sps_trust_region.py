@@ -1,0 +1,90 @@
+"""Training speed of ppo_il.py and trpo_il.py against Stable-Baselines3's PPO and sb3-contrib's TRPO.
+
+Same settings on both sides: one env, the same rollout length, epochs or critic updates, minibatch,
+discount and network width (64 x 64, tanh), one torch thread, alternating which runs first. Our
+scripts run with a minimal imitation phase (--il-steps 1000, one epoch) and regret off, so both
+sides do the same RL work; SPS is env steps over the process's whole wall time (imports included,
+for both). Prints a markdown table with medians and the median of per-pair ratios.
+
+    python benchmarks/sps_trust_region.py --env-id Pendulum-v1 --steps 40960 --repeats 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+# The tuned settings our scripts resolve for each env (see README), spelled for SB3 with one env.
+SETTINGS = {
+    ("ppo", "Pendulum-v1"): dict(n_steps=4096, batch_size=64, n_epochs=10, gamma=0.9, gae_lambda=0.95, learning_rate=1e-3),
+    ("ppo", "LunarLanderContinuous-v3"): dict(n_steps=16384, batch_size=64, n_epochs=4, gamma=0.999, gae_lambda=0.98, learning_rate=3e-4, ent_coef=0.01),
+    ("trpo", "Pendulum-v1"): dict(n_steps=2048, batch_size=128, n_critic_updates=15, gamma=0.9, gae_lambda=0.95, learning_rate=1e-3),
+    ("trpo", "LunarLanderContinuous-v3"): dict(n_steps=2048, batch_size=128, n_critic_updates=20, gamma=0.99, gae_lambda=0.95, learning_rate=1e-3),
+}
+
+
+def sb3_worker(algo: str, env_id: str, steps: int, seed: int) -> None:
+    import torch
+
+    torch.set_num_threads(1)
+    if algo == "ppo":
+        from stable_baselines3 import PPO as Algo
+    else:
+        from sb3_contrib import TRPO as Algo
+    policy_kwargs = {"net_arch": {"pi": [64, 64], "vf": [64, 64]}, "activation_fn": torch.nn.Tanh}
+    model = Algo("MlpPolicy", env_id, seed=seed, device="cpu", policy_kwargs=policy_kwargs, **SETTINGS[(algo, env_id)])
+    model.learn(total_timesteps=steps)
+
+
+def command(impl: str, algo: str, env_id: str, steps: int, seed: int) -> list[str]:
+    if impl == "sb3":
+        return [sys.executable, __file__, "--worker", algo, env_id, str(steps), str(seed)]
+    return [
+        sys.executable, str(ROOT / f"{algo}_il.py"), "--env-id", env_id, "--seed", str(seed), "--total-timesteps", str(steps),
+        "--il-steps", "1000", "--il-max-epochs", "1", "--il-value-epochs", "1", "--regret-estimator", "off", "--torch-threads", "1",
+    ]  # fmt: skip
+
+
+def timed(cmd: list[str], workdir: Path) -> float:
+    start = time.perf_counter()
+    subprocess.run(cmd, check=True, cwd=workdir, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return time.perf_counter() - start
+
+
+def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "--worker":
+        sb3_worker(sys.argv[2], sys.argv[3], int(sys.argv[4]), int(sys.argv[5]))
+        return
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--env-id", default="Pendulum-v1")
+    parser.add_argument("--algos", nargs="+", default=["ppo", "trpo"])
+    parser.add_argument("--steps", type=int, default=40960)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--workdir", type=Path, default=ROOT / "benchmarks" / "results" / "sps_trust_region")
+    args = parser.parse_args()
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    print(f"{args.env_id}, {args.steps} steps, 1 thread")
+    print("| algorithm | ours SPS (median) | SB3 SPS (median) | ratio ours/SB3 (median of pairs) | pairs |")
+    print("|---|---|---|---|---|")
+    for algo in args.algos:
+        ours, theirs = [], []
+        for rep in range(args.repeats):
+            order = ["ours", "sb3"] if rep % 2 == 0 else ["sb3", "ours"]
+            for impl in order:
+                seconds = timed(command(impl, algo, args.env_id, args.steps, rep + 1), args.workdir)
+                (ours if impl == "ours" else theirs).append(args.steps / seconds)
+        ratios = [o / t for o, t in zip(ours, theirs)]
+        print(
+            f"| {algo} | {statistics.median(ours):.0f} | {statistics.median(theirs):.0f} "
+            f"| {statistics.median(ratios):.2f} (range {min(ratios):.2f}-{max(ratios):.2f}) | {args.repeats} |",
+            flush=True,
+        )
+
+
+if __name__ == "__main__":
+    main()
