@@ -16,15 +16,18 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from envs.lane_follower import LaneFollower
 from envs.lunar_lander import lunar_lander_expert, lunar_lander_slow_descent
 from envs.make import make_env
 from envs.pendulum import pendulum_swing_up
 
 Baseline = Callable[[np.ndarray], Optional[np.ndarray]]
 
-BASELINES: dict[str, Baseline] = {
+# A class stands for a stateful baseline: every get_baseline() call gets a fresh instance.
+BASELINES: dict[str, Baseline | type] = {
     "Pendulum-v1": pendulum_swing_up,
     "LunarLanderContinuous-v3": lunar_lander_slow_descent,
+    "JetRacerTrack-v0": LaneFollower,
 }
 # Strong controllers, for tests and imitation checks; not baselines to beat.
 EXPERTS: dict[str, Baseline] = {
@@ -59,7 +62,8 @@ def get_baseline(env_id: str, spec: str = "") -> Baseline:
     if env_id not in BASELINES:
         known = ", ".join(sorted(BASELINES))
         raise ValueError(f"no baseline for {env_id!r} (known: {known}); pass --baseline module:function")
-    return BASELINES[env_id]
+    baseline = BASELINES[env_id]
+    return baseline() if isinstance(baseline, type) else baseline
 
 
 def rollout(env, policy: Baseline, seed: int) -> np.ndarray:

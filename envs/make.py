@@ -10,22 +10,28 @@ _LAZY_REGISTRATIONS = {
 }
 
 
+if "JetRacerTrack-v0" not in gym.registry:
+    # 2000 steps at 20 Hz: 100 s, several laps of the default track
+    gym.register("JetRacerTrack-v0", entry_point="envs.jetracer_track:JetRacerTrackEnv", max_episode_steps=2000)
+
+
 def _register_lazily(env_id: str) -> None:
     for marker, module in _LAZY_REGISTRATIONS.items():
         if marker in env_id and env_id not in gym.registry:
             __import__(module)
 
 
-def make_env(env_id: str, seed: int | None = None, render_mode: str | None = None) -> gym.Env:
+def make_env(env_id: str, seed: int | None = None, render_mode: str | None = None, **kwargs) -> gym.Env:
     """Make ``env_id`` with Gymnasium's default wrappers (TimeLimit included).
 
     ``seed`` seeds the action space (for random warm-up actions); episodes are seeded by the
-    caller through ``env.reset(seed=...)``. Raises ``ValueError`` with a one-line message for an
+    caller through ``env.reset(seed=...)``. ``kwargs`` go to the env's constructor (e.g. ``track``,
+    ``randomize_lighting`` for JetRacerTrack-v0). Raises ``ValueError`` with a one-line message for an
     unknown id.
     """
     _register_lazily(env_id)
     try:
-        env = gym.make(env_id, render_mode=render_mode)
+        env = gym.make(env_id, render_mode=render_mode, **kwargs)
     except gym.error.Error as err:
         raise ValueError(f"unknown env id {env_id!r}: {err}") from None
     if seed is not None:

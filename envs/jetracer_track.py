@@ -1,0 +1,226 @@
+"""JetRacerTrack-v0: a JetRacer-sized car following a stadium lane from its forward camera.
+
+The car is a kinematic bicycle (steering and speed each behind a first-order lag, as a servo and an
+ESC), stepped at a 20 Hz control rate; PyBullet only renders what the camera sees: one textured quad
+carrying the drawn track, through the CPU TinyRenderer. The observation is `car_interface.preprocess`
+of the 112x112 BGR frame, exactly what the real car computes.
+
+Reward: centre-line progress per step (m) x `progress_reward` (faster laps earn more),
+`off_track_reward` once when the car's centre leaves the lane, which terminates the episode;
+truncation at the registered step limit. `info`: cross-track error (m), heading error (rad), speed
+(m/s), s and progress (m), lap count, lap times (simulated s).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from typing import Any, Optional
+
+import gymnasium as gym
+import numpy as np
+
+from envs.car_interface import FRAME_SHAPE, OBS_SIZE, ActionMapping, action_to_commands, preprocess
+from envs.track import TrackSpec, wrap_angle
+
+
+@dataclass(frozen=True)
+class CarSpec:
+    wheelbase: float = 0.2  # m
+    max_steering_angle: float = 0.5  # rad at steering command 1
+    max_speed: float = 2.5  # m/s at throttle 1
+    throttle_deadband: float = 0.2  # throttle below which the motor does not turn the wheels
+    steering_lag: float = 0.1  # s, first-order time constant of the servo
+    speed_lag: float = 0.3  # s, of the drive train
+    camera_height: float = 0.18  # m above the floor
+    camera_forward: float = 0.08  # m ahead of the car's reference point, the rear axle
+    camera_pitch: float = 0.45  # rad below the horizon
+    camera_fov: float = 120.0  # degrees, vertical (the car's camera is a wide-angle one)
+
+
+@contextlib.contextmanager
+def _quiet_stdout():
+    """PyBullet's C code prints to file descriptor 1 on import and connect; keep the scripts' output clean."""
+    import sys
+
+    sys.stdout.flush()
+    saved = os.dup(1)
+    with open(os.devnull, "w") as devnull:
+        os.dup2(devnull.fileno(), 1)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 1)
+            os.close(saved)
+
+
+class JetRacerTrackEnv(gym.Env):
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
+
+    def __init__(
+        self,
+        track: TrackSpec = TrackSpec(),
+        car: CarSpec = CarSpec(),
+        mapping: ActionMapping = ActionMapping(),
+        control_hz: float = 20.0,
+        progress_reward: float = 10.0,
+        off_track_reward: float = -10.0,
+        random_start: bool = True,
+        randomize_lighting: bool = False,
+        render_mode: Optional[str] = None,
+    ):
+        with _quiet_stdout():
+            import pybullet
+            from pybullet_utils import bullet_client
+
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.track, self.car, self.mapping = track, car, mapping
+        self.dt = 1.0 / control_hz
+        self.progress_reward, self.off_track_reward = progress_reward, off_track_reward
+        self.random_start, self.randomize_lighting, self.render_mode = random_start, randomize_lighting, render_mode
+        self.observation_space = gym.spaces.Box(0.0, 1.0, shape=(OBS_SIZE,), dtype=np.float32)
+        self.observation_space.low[-2:] = -1.0
+        self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
+
+        self._p = pybullet
+        with _quiet_stdout():
+            self._client = bullet_client.BulletClient(connection_mode=pybullet.DIRECT)
+        self._assets = tempfile.mkdtemp(prefix="jetracer_track_")
+        self._ground = self._load_ground()
+        marker = self._client.createVisualShape(pybullet.GEOM_BOX, halfExtents=[0.1, 0.06, 0.04], rgbaColor=[0.1, 0.6, 0.2, 1])
+        self._marker = self._client.createMultiBody(baseVisualShapeIndex=marker, basePosition=[0, 0, -1])
+        self._projection = self._client.computeProjectionMatrixFOV(car.camera_fov, 1.0, 0.02, 6.0)
+        self._state = np.zeros(5)  # x, y, yaw, speed, steering angle
+
+    def _load_ground(self) -> int:
+        import cv2
+
+        half_x, half_y = self.track.extent
+        texture_path = os.path.join(self._assets, "track.png")
+        cv2.imwrite(texture_path, cv2.cvtColor(self.track.texture(), cv2.COLOR_RGB2BGR))
+        mesh_path = os.path.join(self._assets, "quad.obj")
+        with open(mesh_path, "w") as f:  # one quad with UVs 0..1, so the texture is not tiled
+            f.write("v -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nvn 0 0 1\nf 1/1/1 2/2/1 3/3/1\nf 1/1/1 3/3/1 4/4/1\n")
+        shape = self._client.createVisualShape(self._p.GEOM_MESH, fileName=mesh_path, meshScale=[half_x, half_y, 1])
+        body = self._client.createMultiBody(baseVisualShapeIndex=shape)
+        self._texture = self._client.loadTexture(texture_path)
+        self._client.changeVisualShape(body, -1, textureUniqueId=self._texture)
+        return body
+
+    def _camera_frame(self, width: int = FRAME_SHAPE[1], height: int = FRAME_SHAPE[0], chase: bool = False) -> np.ndarray:
+        """RGB uint8 image from the car's camera (or, for rendering, from above and behind the car)."""
+        x, y, yaw = self._state[:3]
+        forward = np.array([math.cos(yaw), math.sin(yaw), 0.0])
+        if chase:
+            eye = np.array([x, y, 0.0]) - 0.9 * forward + [0, 0, 1.1]
+            target = np.array([x, y, 0.0]) + 0.6 * forward
+        else:
+            eye = np.array([x, y, self.car.camera_height]) + self.car.camera_forward * forward
+            pitch = self.car.camera_pitch
+            target = eye + math.cos(pitch) * forward - [0, 0, math.sin(pitch)]
+        view = self._client.computeViewMatrix(eye.tolist(), target.tolist(), [0, 0, 1])
+        _, _, rgba, _, _ = self._client.getCameraImage(
+            width, height, view, self._projection, shadow=0, renderer=self._p.ER_TINY_RENDERER, flags=self._p.ER_NO_SEGMENTATION_MASK
+        )
+        return np.asarray(rgba, dtype=np.uint8).reshape(height, width, 4)[..., :3]
+
+    def camera_frame_bgr(self) -> np.ndarray:
+        """The current 112x112 BGR frame, as the car's camera would deliver it."""
+        return np.ascontiguousarray(self._camera_frame()[..., ::-1])
+
+    def _observe(self) -> np.ndarray:
+        return preprocess(self.camera_frame_bgr(), self._previous_action)
+
+    def _info(self) -> dict[str, Any]:
+        x, y, yaw, speed, _ = self._state
+        s, cte, heading = self.track.project(x, y)
+        return {
+            "cte": cte,
+            "heading_error": wrap_angle(yaw - heading),
+            "speed": speed,
+            "s": s,
+            "progress": self._progress,
+            "lap_count": self._laps,
+            "lap_times": list(self._lap_times),
+            "time": self._time,
+        }
+
+    def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None) -> tuple[np.ndarray, dict]:
+        super().reset(seed=seed)
+        s0 = self.np_random.uniform(0.0, self.track.length) if self.random_start else 0.0
+        x, y, heading = self.track.pose_at(s0)
+        offset = self.np_random.uniform(-0.05, 0.05) if self.random_start else 0.0
+        x, y = x - math.sin(heading) * offset, y + math.cos(heading) * offset
+        yaw = heading + (self.np_random.uniform(-0.1, 0.1) if self.random_start else 0.0)
+        self._state = np.array([x, y, yaw, 0.0, 0.0])
+        self._s, self._progress, self._time = self.track.project(x, y)[0], 0.0, 0.0
+        self._laps, self._lap_times, self._lap_started = 0, [], None
+        self._previous_action = np.array([0.0, -1.0], dtype=np.float32)
+        if self.randomize_lighting:
+            tint = self.np_random.uniform(0.65, 1.0) * self.np_random.uniform(0.9, 1.0, size=3)
+            self._client.changeVisualShape(self._ground, -1, rgbaColor=[*tint, 1.0])
+        return self._observe(), self._info()
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        steering_command, throttle_command = action_to_commands(action, self.mapping)
+        car = self.car
+        steering_target = steering_command * car.max_steering_angle
+        speed_target = car.max_speed * max(0.0, throttle_command - car.throttle_deadband) / (1.0 - car.throttle_deadband)
+        x, y, yaw, speed, steering = self._state
+        substeps = 5
+        h = self.dt / substeps
+        for _ in range(substeps):
+            steering += (steering_target - steering) * (1.0 - math.exp(-h / car.steering_lag))
+            speed += (speed_target - speed) * (1.0 - math.exp(-h / car.speed_lag))
+            x += speed * math.cos(yaw) * h
+            y += speed * math.sin(yaw) * h
+            yaw += speed / car.wheelbase * math.tan(steering) * h
+        self._state = np.array([x, y, wrap_angle(yaw), speed, steering])
+        self._time += self.dt
+        self._previous_action = np.clip(np.asarray(action, dtype=np.float32), -1.0, 1.0)
+
+        s, cte, _ = self.track.project(x, y)
+        progress = self.track.progress(self._s, s)
+        self._count_laps(self._s, progress)
+        self._s, self._progress = s, self._progress + progress
+        terminated = abs(cte) > self.track.lane_width / 2.0
+        reward = self.off_track_reward if terminated else progress * self.progress_reward
+        self._marker_follows()
+        return self._observe(), float(reward), terminated, False, self._info()
+
+    def _count_laps(self, s_before: float, progress: float) -> None:
+        """A lap is counted when the car crosses the start line (s = 0) forwards, un-counted backwards."""
+        crossed_forward = progress > 0 and s_before + progress >= self.track.length
+        crossed_backward = progress < 0 and s_before + progress < 0.0
+        if crossed_forward:
+            self._laps += 1
+            if self._lap_started is not None:
+                self._lap_times.append(self._time - self._lap_started)
+            self._lap_started = self._time
+        elif crossed_backward:
+            self._laps -= 1
+            self._lap_started = None  # a lap time needs a clean forward lap from line to line
+
+    def _marker_follows(self) -> None:
+        if self.render_mode is not None:
+            x, y, yaw = self._state[:3]
+            orientation = self._p.getQuaternionFromEuler([0, 0, yaw])
+            # behind the camera, so the camera never sees it
+            self._client.resetBasePositionAndOrientation(self._marker, [x - 0.1 * math.cos(yaw), y - 0.1 * math.sin(yaw), 0.04], orientation)
+
+    def render(self) -> Optional[np.ndarray]:
+        if self.render_mode != "rgb_array":
+            return None
+        self._marker_follows()
+        return self._camera_frame(256, 256, chase=True)
+
+    def close(self) -> None:
+        if getattr(self, "_client", None) is not None:
+            self._client.disconnect()
+            self._client = None
+        shutil.rmtree(getattr(self, "_assets", ""), ignore_errors=True)
