@@ -1,0 +1,200 @@
+"""deploy/: the serial protocol, the mock firmware's state machine, and the host link over mock ports and a pty."""
+
+import time
+
+import pytest
+import serial
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from deploy import protocol as p
+from deploy.link import HostLink
+from deploy.mock_controller import MockController, PtyController, register_url_scheme
+
+MESSAGES = [
+    p.Message(p.HELLO, 0),
+    p.Message(p.ARM, 1, (250, 600)),
+    p.Message(p.DRIVE, 2, (-1000, 550)),
+    p.Message(p.STOP, 3),
+    p.Message(p.ESTOP, 4),
+    p.Message(p.DISARM, 255),
+    p.Message(p.INFO, 5, (1, 1, 0, 50, 2000)),
+    p.Message(p.TELEMETRY, 6, (2, p.DRIVE, -1000, 550, p.STATUS_ARMED, 123456)),
+    p.Message(p.NACK, 7, (2, p.DRIVE, p.NOT_ARMED)),
+]
+
+
+def test_every_message_round_trips_and_frames_have_one_delimiter():
+    decoder = p.FrameDecoder()
+    stream = b"".join(p.encode(m) for m in MESSAGES)
+    assert stream.count(0) == len(MESSAGES)
+    assert list(decoder.feed(stream)) == MESSAGES
+    assert p.crc16(b"123456789") == 0x29B1  # CRC-16/CCITT-FALSE check value
+    with pytest.raises(ValueError, match="bad fields for DRIVE"):
+        p.encode(p.Message(p.DRIVE, 0, (40000, 0)))
+
+
+def test_decoder_resynchronises_after_garbage_and_split_reads():
+    decoder = p.FrameDecoder()
+    # garbage glued to a frame spoils that frame (it is dropped, not misread); the next delimiter resynchronises
+    stream = (b"\x17\x99garbage" + p.encode(MESSAGES[1]) + b"\x00" + p.encode(MESSAGES[2])
+              + b"\xff" * 500 + b"\x00" + p.encode(MESSAGES[7]))  # fmt: skip
+    got = []
+    for i in range(0, len(stream), 3):  # three bytes per read
+        got += list(decoder.feed(stream[i : i + 3]))
+    assert got == [MESSAGES[2], MESSAGES[7]]
+    assert sum(decoder.dropped.values()) >= 2
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=400))
+def test_decoder_never_raises_on_random_bytes(data):
+    decoder = p.FrameDecoder()
+    for message in decoder.feed(data):  # a random frame with a valid CRC is possible, but must parse
+        assert message.type in p.PAYLOADS
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.sampled_from(MESSAGES), min_size=1, max_size=8), st.data())
+def test_corrupted_frames_are_dropped_never_misread(messages, data):
+    stream = bytearray(b"".join(p.encode(m) for m in messages))
+    for _ in range(data.draw(st.integers(1, 4))):
+        i = data.draw(st.integers(0, len(stream) - 1))
+        stream[i] ^= data.draw(st.integers(1, 255))
+    got = list(p.FrameDecoder().feed(bytes(stream)))
+    assert len(got) <= len(messages)
+    for message in got:  # whatever survives is one of the messages sent, intact
+        assert message in messages
+
+
+def frames(controller):
+    return list(p.FrameDecoder().feed(controller.take_output()))
+
+
+def send(controller, message, now):
+    controller.receive(p.encode(message), now)
+    return frames(controller)
+
+
+def test_watchdog_trips_exactly_after_the_armed_period():
+    c = MockController(now=0.0)
+    (ack,) = send(c, p.Message(p.ARM, 1, (250, 600)), 0.0)
+    assert ack.type == p.TELEMETRY and ack.fields[4] & p.STATUS_ARMED
+    send(c, p.Message(p.DRIVE, 2, (300, 500)), 0.1)
+    assert (c.steering, c.throttle) == (0.3, 0.5)
+    c.poll(0.349)
+    assert c.armed and c.throttle == 0.5
+    c.poll(0.351)
+    assert not c.armed and c.throttle == 0.0 and c.watchdog_tripped
+    unsolicited = [f for f in frames(c) if f.type == p.TELEMETRY and f.fields[1] == 0]
+    assert [f.fields[4] for f in unsolicited] == [p.STATUS_ARMED, p.STATUS_WATCHDOG_TRIPPED]  # periodic, then the trip
+    (nack,) = send(c, p.Message(p.DRIVE, 3, (0, 500)), 0.4)  # a late command does not revive it
+    assert nack.type == p.NACK and nack.fields[2] == p.NOT_ARMED
+
+
+def test_throttle_cap_estop_latch_and_nack_reasons():
+    c = MockController()
+    (nack,) = send(c, p.Message(p.DRIVE, 1, (0, 500)), 0.0)
+    assert nack.fields == (1, p.DRIVE, p.NOT_ARMED)
+    (nack,) = send(c, p.Message(p.ARM, 2, (10, 500)), 0.0)  # watchdog below 50 ms
+    assert nack.fields == (2, p.ARM, p.OUT_OF_RANGE)
+    send(c, p.Message(p.ARM, 3, (250, 400)), 0.0)
+    send(c, p.Message(p.DRIVE, 4, (-200, 900)), 0.01)
+    assert c.throttle == 0.4  # capped
+    send(c, p.Message(p.ESTOP, 5), 0.02)
+    assert c.estop_latched and not c.armed and c.throttle == 0.0
+    (nack,) = send(c, p.Message(p.DRIVE, 6, (0, 100)), 0.03)
+    assert nack.fields == (6, p.DRIVE, p.ESTOP_LATCHED)
+    send(c, p.Message(p.ARM, 7, (250, 400)), 0.04)  # re-arming clears the latch
+    assert c.armed and not c.estop_latched
+    (nack,) = send(c, p.Message(p.TELEMETRY, 8, (0, 0, 0, 0, 0, 0)), 0.05)
+    assert nack.fields == (8, p.TELEMETRY, p.UNKNOWN_TYPE)
+    body = bytes([p.VERSION, p.DRIVE, 9, 1, 7])  # DRIVE with a 1-byte payload, good CRC
+    c.receive(p.cobs.encode(body + p.crc16(body).to_bytes(2, "little")) + b"\x00", 0.06)
+    (nack,) = frames(c)
+    assert nack.fields == (9, p.DRIVE, p.BAD_LENGTH)
+    (info,) = send(c, p.Message(p.HELLO, 10), 0.07)
+    assert info.type == p.INFO and info.fields[0] == p.VERSION
+
+
+@pytest.fixture
+def mock_link():
+    register_url_scheme()
+    link = HostLink("mockjetracer://", send_hz=100, command_timeout=0.05).start()
+    yield link
+    link.close()
+
+
+def wait_until(predicate, timeout=1.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.005)
+    return False
+
+
+def test_link_drives_while_fresh_and_stops_when_stale(mock_link):
+    controller = mock_link._port.controller
+    assert mock_link.hello().fields[0] == p.VERSION
+    assert mock_link.arm()
+    mock_link.drive(0.5, 0.55)
+    assert wait_until(lambda: controller.throttle == 0.55 and controller.steering == 0.5)
+    # no new command: after command_timeout the loop sends STOP, which keeps the watchdog fed
+    assert wait_until(lambda: controller.throttle == 0.0, timeout=0.5)
+    time.sleep(0.4)  # longer than the 250 ms watchdog
+    assert controller.armed and not controller.watchdog_tripped
+    assert mock_link.round_trip_stats()["p50"] < 0.05
+
+
+def test_link_estop_is_immediate_and_close_sends_stop_then_estop(mock_link):
+    controller = mock_link._port.controller
+    assert mock_link.arm()
+    mock_link.drive(0.0, 0.5)
+    assert wait_until(lambda: controller.throttle == 0.5)
+    mock_link.estop()
+    assert controller.estop_latched and controller.throttle == 0.0  # synchronous: the write handled it
+    mock_link.drive(0.0, 0.5)
+    time.sleep(0.05)
+    assert controller.throttle == 0.0, "the host no longer believes the controller armed"
+    assert mock_link.arm()
+    mock_link.close()
+    assert controller.log[-1][1] == "e-stop" and not controller.armed
+
+
+def test_pty_link_survives_an_unplug_and_never_rearms_itself():
+    pty = PtyController()
+    link = HostLink(pty.path, send_hz=100, command_timeout=0.05, backoff=(0.02, 0.1)).start()
+    try:
+        assert link.arm()
+        link.drive(0.2, 0.5)
+        assert wait_until(lambda: pty.controller.throttle == 0.5)
+        old_path = pty.path
+        pty.unplug()
+        assert wait_until(lambda: not link.connected.is_set())
+        link.url = old_path  # the device node may come back under the same name
+        pty.replug()
+        link.url = pty.path
+        assert wait_until(lambda: link.connected.is_set(), timeout=3.0)
+        assert link.reconnects >= 1
+        link.drive(0.2, 0.5)
+        time.sleep(0.1)
+        assert not pty.controller.armed and pty.controller.throttle == 0.0, "no automatic re-arm"
+        assert link.arm()
+        link.drive(0.2, 0.5)
+        assert wait_until(lambda: pty.controller.throttle == 0.5)
+    finally:
+        link.close()
+        pty.close()
+
+
+def test_spy_url_wraps_a_real_port(tmp_path):
+    pty = PtyController()
+    log = tmp_path / "spy.txt"
+    port = serial.serial_for_url(f"spy://{pty.path}?file={log}", timeout=0.2)
+    port.write(p.encode(p.Message(p.HELLO, 1)))
+    reply = list(p.FrameDecoder().feed(port.read(64)))
+    port.close()
+    pty.close()
+    assert reply and reply[0].type == p.INFO
+    assert "TX" in log.read_text()
