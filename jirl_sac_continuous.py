@@ -92,7 +92,7 @@ class Args:
     gate_k: int = 5
     """the gate's window K (Alg. 3): steps whose densities and divergences are multiplied"""
     guidance_steps: Optional[int] = None
-    """C decays over this many steps and is 0 after, handing control to the agent (default: 3/4 of --total-timesteps; 0: the paper's constant C)"""
+    """C decays over this many steps and is 0 after, handing control to the agent (default: half of --total-timesteps; 0: the paper's constant C)"""
     guidance_schedule: Literal["geometric", "linear"] = "geometric"
     """geometric: log C falls linearly to log 1e-6, then C = 0; linear: C falls linearly to 0"""
     penalty_sigma2: float = 0.1
@@ -459,7 +459,7 @@ if __name__ == "__main__":
         if baseline is None:
             raise ValueError(f"JIRL needs a baseline and {args.env_id} has none; pass --baseline module:function")
         if args.guidance_steps is None:
-            args.guidance_steps = 3 * args.total_timesteps // 4
+            args.guidance_steps = args.total_timesteps // 2
         if args.penalty_sigma2 <= 0 or args.gate_c < 0 or args.gate_k < 0 or args.guidance_steps < 0:
             raise ValueError("--penalty-sigma2 must be > 0; --gate-c, --gate-k and --guidance-steps must be >= 0")
     except ValueError as err:
