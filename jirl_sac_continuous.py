@@ -370,6 +370,100 @@ class Actor(nn.Module):
         return y_t, log_prob.sum(1, keepdim=True), torch.tanh(mean)
 
 
+class SoftActorCritic:
+    """SAC's networks, optimizers and entropy coefficient, and one gradient step of it (`update`)."""
+
+    def __init__(self, obs_dim: int, act_dim: int, args: Args):
+        self.args = args
+        self.actor = Actor(obs_dim, act_dim, args.hidden_size)
+        self.qf1 = SoftQNetwork(obs_dim, act_dim, args.hidden_size)
+        self.qf2 = SoftQNetwork(obs_dim, act_dim, args.hidden_size)
+        self.qf1_target = SoftQNetwork(obs_dim, act_dim, args.hidden_size)
+        self.qf2_target = SoftQNetwork(obs_dim, act_dim, args.hidden_size)
+        self.qf1_target.load_state_dict(self.qf1.state_dict())
+        self.qf2_target.load_state_dict(self.qf2.state_dict())
+        self.q_params = list(self.qf1.parameters()) + list(self.qf2.parameters())
+        self.q_target_params = list(self.qf1_target.parameters()) + list(self.qf2_target.parameters())
+        self.q_optimizer = optim.Adam(self.q_params, lr=args.q_lr)
+        self.actor_optimizer = optim.Adam(list(self.actor.parameters()), lr=args.policy_lr)
+        # Automatic entropy tuning
+        self.target_entropy = -float(act_dim)
+        self.log_alpha = torch.full((1,), float(np.log(args.alpha)), requires_grad=args.autotune)
+        self.alpha = self.log_alpha.exp().detach()
+        self.a_optimizer = optim.Adam([self.log_alpha], lr=args.q_lr) if args.autotune else None
+
+    def update(self, data: tuple[torch.Tensor, ...], step: int) -> dict[str, torch.Tensor]:
+        """One critic step (and, every policy_frequency steps, actor and alpha steps); the losses, as tensors."""
+        args, alpha = self.args, self.alpha
+        b_obs, b_actions, b_rewards, b_next_obs, b_terminations = data
+        with torch.no_grad():
+            next_state_actions, next_state_log_pi, _ = self.actor.get_action(b_next_obs)
+            qf1_next_target = self.qf1_target(b_next_obs, next_state_actions)
+            qf2_next_target = self.qf2_target(b_next_obs, next_state_actions)
+            min_qf_next_target = torch.min(qf1_next_target, qf2_next_target) - alpha * next_state_log_pi
+            next_q_value = b_rewards + (1 - b_terminations) * args.gamma * min_qf_next_target
+
+        qf1_a_values = self.qf1(b_obs, b_actions)
+        qf2_a_values = self.qf2(b_obs, b_actions)
+        qf1_loss = F.mse_loss(qf1_a_values, next_q_value)
+        qf2_loss = F.mse_loss(qf2_a_values, next_q_value)
+        qf_loss = qf1_loss + qf2_loss
+
+        # optimize the model
+        self.q_optimizer.zero_grad()
+        qf_loss.backward()
+        self.q_optimizer.step()
+        losses = {"qf1_values": qf1_a_values.mean(), "qf2_values": qf2_a_values.mean(), "qf1_loss": qf1_loss,
+                  "qf2_loss": qf2_loss, "qf_loss": qf_loss / 2.0}  # fmt: skip
+
+        if step % args.policy_frequency == 0:  # TD 3 Delayed update support
+            for _ in range(args.policy_frequency):  # compensate for the delay by doing 'actor_update_interval' instead of 1
+                pi, log_pi, _ = self.actor.get_action(b_obs)
+                qf1_pi = self.qf1(b_obs, pi)
+                qf2_pi = self.qf2(b_obs, pi)
+                min_qf_pi = torch.min(qf1_pi, qf2_pi)
+                actor_loss = ((self.alpha * log_pi) - min_qf_pi).mean()
+
+                self.actor_optimizer.zero_grad()
+                actor_loss.backward()
+                self.actor_optimizer.step()
+                losses["actor_loss"] = actor_loss
+
+                if args.autotune:
+                    # the actor step's own log-probabilities, as in SB3 (saves a forward pass)
+                    alpha_loss = (-self.log_alpha.exp() * (log_pi.detach() + self.target_entropy)).mean()
+
+                    self.a_optimizer.zero_grad()
+                    alpha_loss.backward()
+                    self.a_optimizer.step()
+                    self.alpha = self.log_alpha.exp().detach()
+                    losses["alpha_loss"] = alpha_loss
+
+        # update the target networks
+        if step % args.target_network_frequency == 0:
+            with torch.no_grad():
+                torch._foreach_lerp_(self.q_target_params, self.q_params, args.tau)
+        losses["alpha"] = self.alpha
+        return losses
+
+    def state_dict(self) -> dict:
+        """Everything needed to resume training: networks, targets, optimizers, entropy coefficient."""
+        state = {name: getattr(self, name).state_dict() for name in ("actor", "qf1", "qf2", "qf1_target", "qf2_target", "q_optimizer", "actor_optimizer")}
+        state["log_alpha"] = self.log_alpha.detach().clone()
+        if self.a_optimizer is not None:
+            state["a_optimizer"] = self.a_optimizer.state_dict()
+        return state
+
+    def load_state_dict(self, state: dict) -> None:
+        for name in ("actor", "qf1", "qf2", "qf1_target", "qf2_target", "q_optimizer", "actor_optimizer"):
+            getattr(self, name).load_state_dict(state[name])
+        with torch.no_grad():
+            self.log_alpha.copy_(state["log_alpha"])
+        self.alpha = self.log_alpha.exp().detach()
+        if self.a_optimizer is not None:
+            self.a_optimizer.load_state_dict(state["a_optimizer"])
+
+
 def save_checkpoint(path: str, env_id: str, env: gym.Env, actor: Actor, qf1, qf2, args: Args) -> None:
     """Everything needed to rebuild and check the actor: weights, spaces, hyperparameters."""
     torch.save(
@@ -475,31 +569,10 @@ if __name__ == "__main__":
         "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])),
     )
 
-    actor = Actor(obs_dim, act_dim, args.hidden_size)
-    qf1 = SoftQNetwork(obs_dim, act_dim, args.hidden_size)
-    qf2 = SoftQNetwork(obs_dim, act_dim, args.hidden_size)
-    qf1_target = SoftQNetwork(obs_dim, act_dim, args.hidden_size)
-    qf2_target = SoftQNetwork(obs_dim, act_dim, args.hidden_size)
-    qf1_target.load_state_dict(qf1.state_dict())
-    qf2_target.load_state_dict(qf2.state_dict())
-    q_optimizer = optim.Adam(list(qf1.parameters()) + list(qf2.parameters()), lr=args.q_lr)
-    actor_optimizer = optim.Adam(list(actor.parameters()), lr=args.policy_lr)
-    q_params = list(qf1.parameters()) + list(qf2.parameters())
-    q_target_params = list(qf1_target.parameters()) + list(qf2_target.parameters())
-
-    # Automatic entropy tuning
-    if args.autotune:
-        target_entropy = -float(act_dim)
-        log_alpha = torch.zeros(1, requires_grad=True)
-        with torch.no_grad():
-            log_alpha.fill_(np.log(args.alpha))
-        alpha = log_alpha.exp().detach()
-        a_optimizer = optim.Adam([log_alpha], lr=args.q_lr)
-    else:
-        alpha = torch.tensor(args.alpha)
+    sac = SoftActorCritic(obs_dim, act_dim, args)
+    actor = sac.actor
 
     rb = ReplayBuffer(args.buffer_size, obs_dim, act_dim, args.seed)
-    actor_loss = alpha_loss = None  # logged once the first actor update has run
     gate = Gate(args.gate_k)
     rl_control = deque(maxlen=args.rl_control_window)  # who acted in the last steps, for the RL-control fraction
     control_switches = fabricated_transitions = 0
@@ -620,62 +693,11 @@ if __name__ == "__main__":
 
         # ALGO LOGIC: training.
         if global_step >= args.learning_starts:
-            b_obs, b_actions, b_rewards, b_next_obs, b_terminations = rb.sample(args.batch_size)
-            with torch.no_grad():
-                next_state_actions, next_state_log_pi, _ = actor.get_action(b_next_obs)
-                qf1_next_target = qf1_target(b_next_obs, next_state_actions)
-                qf2_next_target = qf2_target(b_next_obs, next_state_actions)
-                min_qf_next_target = torch.min(qf1_next_target, qf2_next_target) - alpha * next_state_log_pi
-                next_q_value = b_rewards + (1 - b_terminations) * args.gamma * min_qf_next_target
-
-            qf1_a_values = qf1(b_obs, b_actions)
-            qf2_a_values = qf2(b_obs, b_actions)
-            qf1_loss = F.mse_loss(qf1_a_values, next_q_value)
-            qf2_loss = F.mse_loss(qf2_a_values, next_q_value)
-            qf_loss = qf1_loss + qf2_loss
-
-            # optimize the model
-            q_optimizer.zero_grad()
-            qf_loss.backward()
-            q_optimizer.step()
-
-            if global_step % args.policy_frequency == 0:  # TD 3 Delayed update support
-                for _ in range(args.policy_frequency):  # compensate for the delay by doing 'actor_update_interval' instead of 1
-                    pi, log_pi, _ = actor.get_action(b_obs)
-                    qf1_pi = qf1(b_obs, pi)
-                    qf2_pi = qf2(b_obs, pi)
-                    min_qf_pi = torch.min(qf1_pi, qf2_pi)
-                    actor_loss = ((alpha * log_pi) - min_qf_pi).mean()
-
-                    actor_optimizer.zero_grad()
-                    actor_loss.backward()
-                    actor_optimizer.step()
-
-                    if args.autotune:
-                        # the actor step's own log-probabilities, as in SB3 (saves a forward pass)
-                        alpha_loss = (-log_alpha.exp() * (log_pi.detach() + target_entropy)).mean()
-
-                        a_optimizer.zero_grad()
-                        alpha_loss.backward()
-                        a_optimizer.step()
-                        alpha = log_alpha.exp().detach()
-
-            # update the target networks
-            if global_step % args.target_network_frequency == 0:
-                with torch.no_grad():
-                    torch._foreach_lerp_(q_target_params, q_params, args.tau)
+            losses = sac.update(rb.sample(args.batch_size), global_step)
 
             if global_step % args.log_every == 0:
-                writer.add_scalar("losses/qf1_values", qf1_a_values.mean().item(), global_step)
-                writer.add_scalar("losses/qf2_values", qf2_a_values.mean().item(), global_step)
-                writer.add_scalar("losses/qf1_loss", qf1_loss.item(), global_step)
-                writer.add_scalar("losses/qf2_loss", qf2_loss.item(), global_step)
-                writer.add_scalar("losses/qf_loss", qf_loss.item() / 2.0, global_step)
-                writer.add_scalar("losses/alpha", alpha.item(), global_step)
-                if actor_loss is not None:
-                    writer.add_scalar("losses/actor_loss", actor_loss.item(), global_step)
-                if alpha_loss is not None:
-                    writer.add_scalar("losses/alpha_loss", alpha_loss.item(), global_step)
+                for name, value in losses.items():
+                    writer.add_scalar(f"losses/{name}", value.item(), global_step)
 
         if global_step % args.log_every == 0 and global_step > 0:
             sps = int(global_step / (time.time() - start_time))
@@ -694,7 +716,7 @@ if __name__ == "__main__":
 
     if args.save_model:
         model_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-        save_checkpoint(model_path, args.env_id, env, actor, qf1, qf2, args)
+        save_checkpoint(model_path, args.env_id, env, sac.actor, sac.qf1, sac.qf2, args)
         print(f"model saved to {model_path}")
         episodic_returns = evaluate(model_path, args.env_id, args.eval_episodes, args.seed)
         for idx, episodic_return in enumerate(episodic_returns):
