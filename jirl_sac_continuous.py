@@ -254,6 +254,8 @@ def log_positive_rho(rho: float) -> float:
     softplus keeps the order of rho, stays within 0.32 of it for rho >= 1, and tends to e^rho below 0,
     so a confident policy that agrees with the baseline still lowers the threshold smoothly.
     """
+    if math.isnan(rho):
+        return math.nan  # compares False in the gate: the baseline keeps control
     if rho < -30.0:  # softplus(rho) = e^rho to 1e-13 here, and would underflow further down
         return float(rho)
     return float(np.log(np.logaddexp(0.0, rho)))

@@ -78,7 +78,7 @@ class HostLink:
         self.info: Optional[p.Message] = None
         self.nacks: List[p.Message] = []
         self.reconnects = 0
-        self._acked = -1  # sequence number of the last command the controller acknowledged
+        self._acks: Dict[int, int] = {}  # acknowledged seq -> status in its telemetry (seq numbers wrap at 256)
         self.connected = threading.Event()
         self._reply = threading.Condition()
 
@@ -165,9 +165,10 @@ class HostLink:
     def arm(self, timeout: float = 1.0) -> bool:
         """Arm the controller with this link's watchdog period and throttle cap; True once telemetry says armed."""
         seq = self._send(p.ARM, (self.watchdog_ms, int(round(self.throttle_cap * 1000))))
-        ok = self._wait_for(lambda: self.telemetry is not None and self.telemetry.armed and self._acked == seq, timeout)
-        self._armed = ok
-        return ok
+        self._wait_for(lambda: seq in self._acks, timeout)
+        status = self._acks.pop(seq, 0)
+        self._armed = bool(status & p.STATUS_ARMED)
+        return self._armed
 
     def drive(self, steering: float, throttle: float) -> None:
         """Set the command the send loop will send while it is fresh."""
@@ -223,7 +224,7 @@ class HostLink:
                 acked_seq, acked_type, steering, throttle, status, uptime = message.fields
                 self.telemetry = Telemetry(steering / 1000.0, throttle / 1000.0, status, uptime, now)
                 if acked_type:
-                    self._acked = acked_seq
+                    self._acks[acked_seq] = status
                     sent = self._sent.pop(acked_seq, None)
                     if sent is not None:
                         self.round_trips.append(now - sent)
