@@ -1,6 +1,8 @@
 # JIRL (Dey et al., "A Joint Imitation-Reinforcement Learning Framework for Reduced Baseline Regret")
 # on top of Soft Actor-Critic: `diff sac_continuous.py jirl_sac_continuous.py` shows exactly what JIRL adds.
 # Run: python jirl_sac_continuous.py --env-id Pendulum-v1 --total-timesteps 20000
+from __future__ import annotations  # the JIRL script also runs on the car's Python 3.8 (deploy/)
+
 import importlib
 import math
 import os

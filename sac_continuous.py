@@ -1,6 +1,8 @@
 # Soft Actor-Critic (Haarnoja et al. 2018) for continuous actions, in one file, CleanRL's shape.
 # Logs the baseline regret of the JIRL paper (Definition 1) so every method is measured alike.
 # Run: python sac_continuous.py --env-id Pendulum-v1 --total-timesteps 20000
+from __future__ import annotations  # the JIRL script also runs on the car's Python 3.8 (deploy/)
+
 import importlib
 import os
 import random

@@ -167,9 +167,17 @@ class JetRacerTrackEnv(gym.Env):
         return self._observe(), self._info()
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
-        steering_command, throttle_command = action_to_commands(action, self.mapping)
+        self._previous_action = np.clip(np.asarray(action, dtype=np.float32), -1.0, 1.0)
+        progress, terminated = self.drive(*action_to_commands(action, self.mapping))
+        reward = self.off_track_reward if terminated else progress * self.progress_reward
+        return self._observe(), float(reward), terminated, False, self._info()
+
+    def drive(self, steering_command: float, throttle_command: float) -> tuple[float, bool]:
+        """Advance one control period under raw commands, as a motor controller applies them (a
+        throttle below the deadband, e.g. STOP's 0, brakes the car to rest). Returns (centre-line
+        progress in m, whether the car has left the lane). `step` is this after the action mapping."""
         car = self.car
-        steering_target = steering_command * car.max_steering_angle
+        steering_target = float(np.clip(steering_command, -1.0, 1.0)) * car.max_steering_angle
         speed_target = car.max_speed * max(0.0, throttle_command - car.throttle_deadband) / (1.0 - car.throttle_deadband)
         x, y, yaw, speed, steering = self._state
         substeps = 5
@@ -182,16 +190,13 @@ class JetRacerTrackEnv(gym.Env):
             yaw += speed / car.wheelbase * math.tan(steering) * h
         self._state = np.array([x, y, wrap_angle(yaw), speed, steering])
         self._time += self.dt
-        self._previous_action = np.clip(np.asarray(action, dtype=np.float32), -1.0, 1.0)
 
         s, cte, _ = self.track.project(x, y)
         progress = self.track.progress(self._s, s)
         self._count_laps(self._s, progress)
         self._s, self._progress = s, self._progress + progress
-        terminated = abs(cte) > self.track.lane_width / 2.0
-        reward = self.off_track_reward if terminated else progress * self.progress_reward
         self._marker_follows()
-        return self._observe(), float(reward), terminated, False, self._info()
+        return progress, abs(cte) > self.track.lane_width / 2.0
 
     def _count_laps(self, s_before: float, progress: float) -> None:
         """A lap is counted when the car crosses the start line (s = 0) forwards, un-counted backwards."""

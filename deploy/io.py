@@ -1,0 +1,165 @@
+"""Cameras, the gamepad, and the simulated car for sim-in-the-loop runs. Runs on Python 3.8.
+
+Every camera returns `(frame, timestamp)`: a 112x112 BGR uint8 frame (`envs.car_interface.FRAME_SHAPE`)
+and the monotonic time it was captured, or `(None, 0.0)` when it has none; the control loop treats a
+frame older than two control periods as lost. OpenCV and the simulator are imported lazily.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import threading
+import time
+from typing import Optional, Tuple
+
+import numpy as np
+
+from envs.car_interface import FRAME_SHAPE
+
+Frame = Tuple[Optional[np.ndarray], float]
+
+
+def csi_pipeline(width: int = FRAME_SHAPE[1], height: int = FRAME_SHAPE[0], fps: int = 30) -> str:
+    """GStreamer pipeline for a Jetson CSI camera, scaled on the GPU to the policy's frame size (BGR)."""
+    return (
+        "nvarguscamerasrc ! video/x-raw(memory:NVMM), width=1280, height=720, framerate=%d/1 ! "
+        "nvvidconv ! video/x-raw, width=%d, height=%d, format=BGRx ! videoconvert ! video/x-raw, format=BGR ! "
+        "appsink drop=true max-buffers=1" % (fps, width, height)
+    )
+
+
+class OpenCVCamera:
+    """A cv2.VideoCapture read by a background thread, so `read()` returns the newest frame at once."""
+
+    def __init__(self, source, api: Optional[int] = None, realtime: bool = True) -> None:
+        import cv2
+
+        self._cv2 = cv2
+        self.capture = cv2.VideoCapture(source, api) if api is not None else cv2.VideoCapture(source)
+        if not self.capture.isOpened():
+            raise ValueError(f"cannot open camera {source!r}")
+        self.realtime = realtime  # False for a video file: one new frame per read, at the file's pace
+        self._latest: Frame = (None, 0.0)
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self.frames_read = 0
+        if realtime:
+            self._thread = threading.Thread(target=self._grab, daemon=True)
+            self._thread.start()
+
+    def _convert(self, frame: np.ndarray) -> np.ndarray:
+        if frame.shape != FRAME_SHAPE:
+            frame = self._cv2.resize(frame, (FRAME_SHAPE[1], FRAME_SHAPE[0]), interpolation=self._cv2.INTER_AREA)
+        return frame
+
+    def _grab(self) -> None:
+        while not self._stop.is_set():
+            ok, frame = self.capture.read()
+            if not ok:
+                time.sleep(0.005)
+                continue
+            with self._lock:
+                self._latest = (self._convert(frame), time.monotonic())
+                self.frames_read += 1
+
+    def read(self) -> Frame:
+        if not self.realtime:
+            ok, frame = self.capture.read()
+            if not ok:
+                return None, 0.0
+            self.frames_read += 1
+            return self._convert(frame), time.monotonic()
+        with self._lock:
+            return self._latest
+
+    def close(self) -> None:
+        self._stop.set()
+        self.capture.release()
+
+
+class SimWorld:
+    """The PyBullet track car driven by a mock controller's applied outputs: sim-in-the-loop.
+
+    `tick()` advances the car by one control period under whatever steering and throttle the
+    controller is applying (so the serial protocol, the watchdog and STOP all act on the car), and
+    `read()` is the car's camera. A car that leaves the lane is put back at a random pose.
+    """
+
+    def __init__(self, controller, seed: int = 0, **env_kwargs) -> None:
+        from envs.jetracer_track import JetRacerTrackEnv
+
+        self.controller = controller
+        self.env = JetRacerTrackEnv(**env_kwargs)
+        self.env.reset(seed=seed)
+        self.seed, self.resets = seed, 0
+        self.off_track = False
+
+    def tick(self) -> float:
+        """One control period; returns the centre-line progress in m."""
+        progress, self.off_track = self.env.drive(self.controller.steering, self.controller.throttle)
+        if self.off_track:
+            self.resets += 1
+            self.env.reset(seed=self.seed + self.resets)
+        return progress
+
+    def read(self) -> Frame:
+        return self.env.camera_frame_bgr(), time.monotonic()
+
+    @property
+    def info(self) -> dict:
+        return self.env._info()
+
+    def close(self) -> None:
+        self.env.close()
+
+
+def open_camera(spec: str, world: Optional[SimWorld] = None):
+    """`csi`, `usb:N`, `file:PATH` (a recorded video, replayed frame by frame) or `sim`."""
+    if spec == "sim":
+        if world is None:
+            raise ValueError("camera 'sim' needs the simulator: use it with --port mockjetracer://")
+        return world
+    if spec == "csi":
+        import cv2
+
+        return OpenCVCamera(csi_pipeline(), cv2.CAP_GSTREAMER)
+    if spec.startswith("usb:"):
+        return OpenCVCamera(int(spec[4:]))
+    if spec.startswith("file:"):
+        return OpenCVCamera(spec[5:], realtime=False)
+    raise ValueError(f"unknown camera {spec!r}: use csi, usb:N, file:PATH or sim")
+
+
+class Gamepad:
+    """A Linux joystick device (/dev/input/jsN) read without extra dependencies.
+
+    Events are 8 bytes: time (ms, u32), value (i16), type (u8: 1 button, 2 axis, 0x80 initial state),
+    number (u8). Axes are scaled to [-1, 1].
+    """
+
+    EVENT = struct.Struct("<IhBB")
+
+    def __init__(self, path: str) -> None:
+        self.fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+        self.axes: dict = {}
+        self.buttons: dict = {}
+
+    def poll(self) -> None:
+        while True:
+            try:
+                data = os.read(self.fd, self.EVENT.size * 64)
+            except BlockingIOError:
+                return
+            if not data:
+                return
+            for offset in range(0, len(data) - len(data) % self.EVENT.size, self.EVENT.size):
+                _, value, kind, number = self.EVENT.unpack_from(data, offset)
+                kind &= 0x7F
+                if kind == 1:
+                    self.buttons[number] = bool(value)
+                elif kind == 2:
+                    self.axes[number] = value / 32767.0
+
+    def close(self) -> None:
+        os.close(self.fd)

@@ -1,0 +1,481 @@
+"""Drive a JetRacer with a trained policy or with the baseline, or train a policy on the car with JIRL.
+
+    python -m deploy.jetracer run --checkpoint runs/RUN/jirl_sac_continuous.cleanrl_model --port /dev/ttyACM0 --camera csi
+    python -m deploy.jetracer baseline --steps 600                 # simulated car behind a mock controller
+    python -m deploy.jetracer train --total-steps 54000 --resume   # the paper's 45 minutes at 20 Hz
+
+The car is reached through the serial protocol of docs/serial_protocol.md (`deploy.link`); with
+`--port mockjetracer:// --camera sim` (the defaults) a mock controller drives the PyBullet track car,
+so every mode runs headless through the real protocol (sim-in-the-loop). Safety on the host: steering
+clamped and rate-limited, throttle held in its window, a NaN action sends STOP, a frame older than
+two control periods stops the car and ends the episode, e-stop on the gamepad button and on
+Ctrl-C/SIGTERM; the controller's own watchdog stops the car if this process dies.
+Runs on the car's Python 3.8 (JetPack 5) and newer.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import statistics
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Callable, List, Optional, Tuple, Union
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the JIRL script and envs/
+
+import jirl_sac_continuous as jirl  # noqa: E402
+from deploy.io import Gamepad, SimWorld, open_camera  # noqa: E402
+from deploy.link import HostLink  # noqa: E402
+from envs.car_interface import OBS_SIZE, ActionMapping, action_to_commands, preprocess  # noqa: E402
+from envs.lane_follower import LaneFollower  # noqa: E402
+
+TRAIN_STATE_FORMAT = "jirl-car-training-v1"
+
+
+@dataclass
+class Common:
+    port: str = "mockjetracer://"
+    """motor controller: a serial device (/dev/ttyACM0), mockjetracer:// (simulated car), or spy://DEVICE?file=LOG"""
+    camera: str = "sim"
+    """csi (Jetson CSI via GStreamer), usb:N, file:PATH (recorded video), or sim"""
+    control_hz: float = 20.0
+    """control rate"""
+    min_throttle: float = 0.45
+    """throttle command at policy throttle -1 (forward only)"""
+    max_throttle: float = 0.6
+    """throttle command at policy throttle +1; also the controller's throttle cap"""
+    max_steering_rate: float = 8.0
+    """largest steering command change per second"""
+    watchdog_ms: int = 250
+    """the controller stops the car if no command arrives for this long"""
+    gamepad: str = ""
+    """Linux joystick device (e.g. /dev/input/js0): a button e-stops, a held trigger takes over steering"""
+    estop_button: int = 0
+    """gamepad button that e-stops"""
+    takeover_axis: int = 4
+    """gamepad axis that, above 0.5, gives a human the steering (the baseline's turn in training)"""
+    steering_axis: int = 0
+    """gamepad axis the human steers with"""
+    log_dir: str = "runs"
+    """TensorBoard logs go to log_dir/{mode}__{time}"""
+    seed: int = 0
+    """seed of the simulated car's start poses"""
+
+
+@dataclass
+class Run(Common):
+    checkpoint: str = ""
+    """a checkpoint of jirl_sac_continuous.py or sac_continuous.py trained on JetRacerTrack-v0 or by `train`"""
+    steps: int = 1200
+    """control steps to drive (1200 = 1 minute at 20 Hz)"""
+
+
+@dataclass
+class Baseline(Common):
+    steps: int = 1200
+    """control steps to drive; the mean reward per step printed at the end is train's --baseline-reward-per-step"""
+
+
+def car_jirl_defaults() -> jirl.Args:
+    # The paper's car settings (report Tables I-III): 64 units, batch 64, buffer 10k, K = 10, sigma^2 = 0.01.
+    return jirl.Args(env_id="JetRacer", hidden_size=64, batch_size=64, buffer_size=10_000, learning_starts=300,
+                     gate_k=10, penalty_sigma2=0.01, guidance_steps=27_000)  # fmt: skip
+
+
+@dataclass
+class Train(Common):
+    total_steps: int = 54_000
+    """control steps of training (54k = 45 minutes at 20 Hz, the paper's budget)"""
+    train_every: int = 400
+    """pause every this many steps: STOP, train, checkpoint, resume (the paper: 400)"""
+    gradient_steps: int = 200
+    """gradient steps per pause (the paper: 200)"""
+    checkpoint: str = "runs/jetracer_train.pt"
+    """training state (agent, replay buffer, counters), written atomically at every pause"""
+    resume: bool = False
+    """continue from --checkpoint"""
+    baseline_reward_per_step: float = 1.075
+    """the baseline's measured reward per step (from `baseline`), for the unpaired regret estimate"""
+    jirl: jirl.Args = field(default_factory=car_jirl_defaults)
+    """JIRL and SAC hyperparameters (see jirl_sac_continuous.py --help)"""
+
+
+def car_reward(throttle_command: float, off_track: bool, mapping: ActionMapping) -> float:
+    """The paper's car reward: a living reward plus a bonus for speed; -10 for leaving the lane (sim only)."""
+    return -10.0 if off_track else 1.0 + 0.1 * throttle_command / mapping.max_throttle
+
+
+class SafetyFilter:
+    """Policy action -> commands the car may receive: NaN means STOP (None); steering clamped and rate-limited."""
+
+    def __init__(self, mapping: ActionMapping, max_steering_rate: float, period: float) -> None:
+        self.mapping, self.max_step = mapping, max_steering_rate * period
+        self.steering = 0.0
+
+    def __call__(self, action: np.ndarray) -> Optional[Tuple[float, float]]:
+        try:
+            steering, throttle = action_to_commands(action, self.mapping)
+        except ValueError:
+            return None
+        self.steering += float(np.clip(steering - self.steering, -self.max_step, self.max_step))
+        return self.steering, throttle
+
+
+class CarSession:
+    """The link, the camera (and the simulator behind both in sim-in-the-loop), safety, timing and logs."""
+
+    def __init__(self, args: Common, mode: str) -> None:
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.args, self.period = args, 1.0 / args.control_hz
+        self.mapping = ActionMapping(min_throttle=args.min_throttle, max_throttle=args.max_throttle)
+        self.safety = SafetyFilter(self.mapping, args.max_steering_rate, self.period)
+        self.link = HostLink(args.port, send_hz=2.5 * args.control_hz, command_timeout=2.0 * self.period,
+                             watchdog_ms=args.watchdog_ms, throttle_cap=args.max_throttle).start()  # fmt: skip
+        self.world = SimWorld(self.link._port.controller, seed=args.seed) if args.port.startswith("mockjetracer") else None
+        self.camera = open_camera(args.camera, self.world)
+        self.gamepad = Gamepad(args.gamepad) if args.gamepad else None
+        self.writer = SummaryWriter(os.path.join(args.log_dir, f"{mode}__{int(time.time())}"))
+        self.previous_action = np.array([0.0, -1.0], dtype=np.float32)
+        self.stop_requested = False
+        self.frames_dropped = 0
+        self.laps_logged = 0
+        self.periods: deque = deque(maxlen=2000)
+        self._last_tick = time.monotonic()
+        self._next_tick = self._last_tick
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self._on_signal)
+        if not self.link.arm():
+            self.close()
+            raise RuntimeError(f"the controller on {args.port} did not arm")
+
+    def _on_signal(self, *_) -> None:
+        self.link.estop()  # at once, not at the next tick
+        self.stop_requested = True
+
+    def observe(self) -> Optional[np.ndarray]:
+        """Advance the simulator (if any) one period and read the camera; None if the frame is stale."""
+        if self.world is not None:
+            self.world.tick()
+        frame, captured = self.camera.read()
+        if frame is None or time.monotonic() - captured > 2.0 * self.period:
+            self.frames_dropped += 1
+            self.link.stop()
+            return None
+        return preprocess(frame, self.previous_action)
+
+    def human_action(self) -> Optional[np.ndarray]:
+        """The gamepad's e-stop and takeover: an action while a human steers, else None."""
+        if self.gamepad is None:
+            return None
+        self.gamepad.poll()
+        if self.gamepad.buttons.get(self.args.estop_button):
+            self.link.estop()
+            self.stop_requested = True
+            return None
+        if self.gamepad.axes.get(self.args.takeover_axis, -1.0) > 0.5:
+            return np.array([-self.gamepad.axes.get(self.args.steering_axis, 0.0), -1.0], dtype=np.float32)
+        return None
+
+    def act(self, action: np.ndarray) -> Optional[Tuple[float, float]]:
+        commands = self.safety(action)
+        if commands is None:
+            self.link.stop()
+        else:
+            self.link.drive(*commands)
+            self.previous_action = np.clip(np.asarray(action, dtype=np.float32), -1.0, 1.0)
+        return commands
+
+    def wait(self) -> None:
+        """Hold the control rate; record the achieved period."""
+        self._next_tick += self.period
+        delay = self._next_tick - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        else:
+            self._next_tick = time.monotonic()  # late: do not try to catch up with a burst
+        now = time.monotonic()
+        self.periods.append(now - self._last_tick)
+        self._last_tick = now
+
+    def timing(self) -> dict:
+        periods = sorted(self.periods)
+        if not periods:
+            return {}
+        p50, p99 = statistics.median(periods), periods[min(len(periods) - 1, int(0.99 * len(periods)))]
+        return {"period_p50_ms": 1000 * p50, "period_p99_ms": 1000 * p99, "jitter_ms": 1000 * statistics.pstdev(periods)}
+
+    def log(self, step: int) -> None:
+        for key, value in self.timing().items():
+            self.writer.add_scalar(f"loop/{key}", value, step)
+        for key, value in self.link.round_trip_stats().items():
+            self.writer.add_scalar(f"link/rtt_{key}_ms", 1000 * value, step)
+        self.writer.add_scalar("loop/frames_dropped", self.frames_dropped, step)
+        if self.world is not None:
+            laps = self.world.info["lap_times"]
+            for lap_time in laps[self.laps_logged :]:
+                self.writer.add_scalar("charts/lap_time", lap_time, step)
+            self.laps_logged = len(laps)
+
+    def close(self) -> None:
+        self.link.close()  # STOP, then ESTOP
+        if hasattr(self.camera, "close") and self.camera is not self.world:
+            self.camera.close()
+        if self.world is not None:
+            self.world.close()
+        if self.gamepad is not None:
+            self.gamepad.close()
+        self.writer.close()
+
+
+class CarSpaces:
+    """Observation and action spaces of the car, for checking a checkpoint against them."""
+
+    def __init__(self) -> None:
+        import gymnasium as gym
+
+        self.observation_space = gym.spaces.Box(-1.0, 1.0, shape=(OBS_SIZE,), dtype=np.float32)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
+
+
+def drive(session: CarSession, policy: Callable[[np.ndarray], np.ndarray], steps: int) -> List[float]:
+    """Drive with `policy` for `steps` control periods; the per-step car rewards."""
+    rewards: List[float] = []
+    for step in range(steps):
+        if session.stop_requested:
+            break
+        obs = session.observe()
+        if obs is not None:
+            action = session.human_action()
+            commands = session.act(policy(obs) if action is None else action)
+            off_track = session.world is not None and session.world.off_track
+            rewards.append(car_reward(commands[1] if commands else 0.0, off_track, session.mapping))
+        if step % 100 == 0:
+            session.log(step)
+        session.wait()
+    session.log(steps)
+    return rewards
+
+
+def run(args: Run) -> List[float]:
+    import torch
+
+    if not args.checkpoint:
+        raise SystemExit("run: error: --checkpoint is required")
+    try:
+        actor = jirl.actor_from_checkpoint(jirl.load_checkpoint(args.checkpoint), CarSpaces())
+    except (ValueError, FileNotFoundError) as err:
+        raise SystemExit(f"run: error: {err}")
+
+    def policy(obs: np.ndarray) -> np.ndarray:
+        with torch.inference_mode():
+            _, _, action = actor.get_action(torch.from_numpy(obs).unsqueeze(0))
+        return action[0].numpy()
+
+    session = CarSession(args, "run")
+    try:
+        rewards = drive(session, policy, args.steps)
+    finally:
+        session.close()
+    report(session, rewards, "run")
+    return rewards
+
+
+def baseline(args: Baseline) -> List[float]:
+    session = CarSession(args, "baseline")
+    follower = LaneFollower()
+    try:
+        rewards = drive(session, follower, args.steps)
+    finally:
+        session.close()
+    report(session, rewards, "baseline")
+    return rewards
+
+
+def report(session: CarSession, rewards: List[float], mode: str) -> None:
+    laps = session.world.info["lap_times"] if session.world is not None else []
+    print(f"{mode}: {len(rewards)} steps, mean reward per step {np.mean(rewards) if rewards else float('nan'):.4f}")
+    if laps:
+        print(f"{mode}: lap times {', '.join(f'{t:.2f}' for t in laps)} s")
+    print(f"{mode}: {session.timing()}, rtt {session.link.round_trip_stats()}, frames dropped {session.frames_dropped}")
+
+
+def save_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuffer, counters: dict, args: Train) -> None:
+    """Agent, replay buffer and counters, written to a temporary file then renamed: never half-written."""
+    import torch
+
+    n = rb.size
+    state = {
+        "format": TRAIN_STATE_FORMAT,
+        "sac": sac.state_dict(),
+        "buffer": {name: torch.from_numpy(getattr(rb, name)[:n].copy()) for name in ("obs", "next_obs", "actions", "rewards", "terminations")},
+        "buffer_pos": rb.pos,
+        "counters": counters,
+        "hidden_size": args.jirl.hidden_size,
+    }
+    tmp = f"{path}.tmp"
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+    spaces = CarSpaces()
+    jirl.save_checkpoint(f"{path}.actor.cleanrl_model.tmp", "JetRacer", spaces, sac.actor, sac.qf1, sac.qf2, args.jirl)
+    os.replace(f"{path}.actor.cleanrl_model.tmp", f"{path}.actor.cleanrl_model")
+
+
+def load_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuffer) -> dict:
+    import torch
+
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise
+    except Exception as err:
+        raise ValueError(f"{path} is not a readable training state ({type(err).__name__}: {err})") from None
+    if not isinstance(state, dict) or state.get("format") != TRAIN_STATE_FORMAT:
+        raise ValueError(f"{path} is not a {TRAIN_STATE_FORMAT} file")
+    sac.load_state_dict(state["sac"])
+    n = len(state["buffer"]["obs"])
+    for name, values in state["buffer"].items():
+        getattr(rb, name)[:n] = values.numpy()
+    rb.size, rb.pos = n, state["buffer_pos"]
+    return state["counters"]
+
+
+def train(args: Train) -> dict:
+    """The on-car JIRL loop (Alg. 1-3) with pause-and-train; returns the final counters."""
+    import torch
+
+    hp = args.jirl
+    if hp.penalty_sigma2 <= 0:
+        raise SystemExit("train: error: --jirl.penalty-sigma2 must be > 0")
+    torch.manual_seed(args.seed)
+    torch.set_num_threads(hp.torch_threads)
+    sac = jirl.SoftActorCritic(OBS_SIZE, 2, hp)
+    rb = jirl.ReplayBuffer(hp.buffer_size, OBS_SIZE, 2, args.seed)
+    counters = {"step": 0, "fabricated_transitions": 0, "control_switches": 0, "baseline_regret_per_step": 0.0,
+                "paired_regret_per_step": 0.0, "updates": 0}  # fmt: skip
+    if args.resume:
+        try:
+            counters = load_training_state(args.checkpoint, sac, rb)
+        except (ValueError, FileNotFoundError) as err:
+            raise SystemExit(f"train: error: {err}")
+        print(f"resumed at step {counters['step']} with {rb.size} transitions")
+
+    session = CarSession(args, "train")
+    follower = LaneFollower()
+    gate = jirl.Gate(hp.gate_k)
+    rl_control: deque = deque(maxlen=hp.rl_control_window)
+    shadow = None  # sim-in-the-loop: the baseline drives a twin car from the same poses, for the paired regret
+    if session.world is not None:
+        shadow = SimWorld(_NullController(), seed=args.seed)
+        shadow_follower, shadow_previous = LaneFollower(), np.array([0.0, -1.0], dtype=np.float32)
+    guidance = hp.guidance_steps if hp.guidance_steps is not None else args.total_steps // 2
+    previous: Optional[tuple] = None  # (obs, stored action, rl_action, rl_acted)
+    obs = None
+    try:
+        while counters["step"] < args.total_steps and not session.stop_requested:
+            step = counters["step"]
+            if step > 0 and step % args.train_every == 0 and previous is not None:
+                session.link.stop()  # pause-and-train: the car waits, stopped, while the agent learns
+                if rb.size >= max(hp.learning_starts, hp.batch_size):
+                    for _ in range(args.gradient_steps):
+                        losses = sac.update(rb.sample(hp.batch_size), counters["updates"])
+                        counters["updates"] += 1
+                    for name, value in losses.items():
+                        session.writer.add_scalar(f"losses/{name}", value.item(), step)
+                save_training_state(args.checkpoint, sac, rb, counters, args)
+                session._next_tick = time.monotonic()
+
+            next_obs = session.observe()
+            if next_obs is None:  # stale frame: the car is stopped; the episode ends here
+                previous, obs = None, None
+                gate.new_episode()
+                session.wait()
+                continue
+            off_track = session.world is not None and session.world.off_track
+            if previous is not None:  # the transition of the previous step is complete now
+                p_obs, p_action, p_rl_action, p_rl_acted, p_throttle, p_baseline = previous
+                reward = car_reward(p_throttle, off_track, session.mapping)
+                counters["baseline_regret_per_step"] += max(0.0, args.baseline_reward_per_step - reward)
+                rb.add(p_obs, p_action, reward, next_obs, off_track)
+                if not p_rl_acted and p_baseline is not None:
+                    rb.add(p_obs, p_rl_action, jirl.penalized_reward(reward, p_baseline, p_rl_action, hp.penalty_sigma2), next_obs, off_track)
+                    counters["fabricated_transitions"] += 1
+            if off_track:
+                follower.reset()
+                gate.new_episode()
+                previous = None
+            obs = next_obs
+
+            # Alg. 1: the baseline's action (a human takeover is the baseline, intervening)
+            human = session.human_action()
+            baseline_action = human if human is not None else follower(obs)
+            with torch.inference_mode():
+                mean, log_std = sac.actor(torch.from_numpy(obs).unsqueeze(0))
+                rl_action = torch.tanh(torch.normal(mean, log_std.exp()))[0].numpy()
+            mean, log_std = mean[0].numpy().astype(np.float64), log_std[0].numpy().astype(np.float64)
+            if human is not None:
+                rl_acts = False
+            else:  # Alg. 3
+                c = jirl.guidance_c(hp.gate_c, step, guidance, hp.guidance_schedule)
+                rl_acts = gate.decide(jirl.squashed_log_prob(mean, log_std, baseline_action), jirl.divergence(mean, log_std, baseline_action), c)
+            if previous is not None and previous[3] and not rl_acts and hp.use_switch_penalty:
+                rb.add(previous[0], previous[2], hp.switch_penalty, obs, False)  # Sec. V.A
+            counters["control_switches"] += gate.record(rl_acts)
+            rl_control.append(rl_acts)
+            action = rl_action if rl_acts else np.asarray(baseline_action, dtype=np.float32)
+            commands = session.act(action)
+            previous = (obs, action, rl_action, rl_acts, commands[1] if commands else 0.0, None if rl_acts else baseline_action)
+
+            if shadow is not None:  # the baseline's own step from the same start, paired by index
+                if off_track:
+                    shadow.env.reset(seed=session.world.seed + session.world.resets)
+                    shadow_follower.reset()
+                shadow_previous = shadow_follower(preprocess(shadow.read()[0], shadow_previous))
+                shadow_commands = action_to_commands(shadow_previous, session.mapping)
+                shadow.controller.set(*shadow_commands)
+                shadow.tick()
+                counters["paired_regret_per_step"] += max(0.0, car_reward(shadow_commands[1], shadow.off_track, session.mapping)
+                                                         - car_reward(commands[1] if commands else 0.0, off_track, session.mapping))  # fmt: skip
+            counters["step"] += 1
+            if step % 100 == 0:
+                session.log(step)
+                session.writer.add_scalar("charts/rl_control_fraction", sum(rl_control) / len(rl_control), step)
+                for key in ("fabricated_transitions", "control_switches", "baseline_regret_per_step", "paired_regret_per_step"):
+                    session.writer.add_scalar(f"charts/{key}", counters[key], step)
+            session.wait()
+        save_training_state(args.checkpoint, sac, rb, counters, args)
+    finally:
+        session.close()
+        if shadow is not None:
+            shadow.close()
+    counters["rl_control_fraction"] = sum(rl_control) / len(rl_control) if rl_control else 0.0
+    print(f"train: {counters}")
+    return counters
+
+
+class _NullController:
+    """Stands in for a motor controller in the shadow simulator: it applies what it is told."""
+
+    steering = 0.0
+    throttle = 0.0
+
+    def set(self, steering: float, throttle: float) -> None:
+        self.steering, self.throttle = steering, throttle
+
+
+def main(argv: Optional[List[str]] = None) -> None:
+    import tyro
+
+    args = tyro.extras.subcommand_cli_from_dict({"run": Run, "baseline": Baseline, "train": Train}, args=argv)
+    {Run: run, Baseline: baseline, Train: train}[type(args)](args)
+
+
+if __name__ == "__main__":
+    main()

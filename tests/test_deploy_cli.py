@@ -1,0 +1,95 @@
+"""deploy/jetracer.py: safety, and the run, baseline and train modes headless against the simulated car."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import ROOT
+
+jetracer = pytest.importorskip("deploy.jetracer")
+from envs.car_interface import ActionMapping  # noqa: E402
+
+FAST = ["--jirl.hidden-size", "16", "--jirl.batch-size", "16", "--jirl.learning-starts", "30"]
+
+
+def test_safety_filter_stops_on_nan_clamps_and_rate_limits():
+    safety = jetracer.SafetyFilter(ActionMapping(), max_steering_rate=4.0, period=0.05)  # 0.2 per step
+    assert safety(np.array([np.nan, 0.0])) is None
+    assert safety(np.array([1.0, 5.0])) == (pytest.approx(0.2), pytest.approx(0.6))
+    assert safety(np.array([1.0, -5.0])) == (pytest.approx(0.4), pytest.approx(0.45))
+    assert safety(np.array([-1.0, 0.0]))[0] == pytest.approx(0.2)
+
+
+def test_baseline_mode_drives_the_simulated_car_through_the_protocol(tmp_path):
+    rewards = jetracer.baseline(jetracer.Baseline(steps=60, log_dir=str(tmp_path)))
+    assert len(rewards) == 60
+    assert np.allclose(rewards, 1.075)  # 1 + 0.1 * 0.45 / 0.6: the baseline's slowest throttle, never off the lane
+
+
+def test_a_stale_camera_stops_the_car(tmp_path):
+    session = jetracer.CarSession(jetracer.Baseline(log_dir=str(tmp_path)), "stale")
+    try:
+        session.act(np.array([0.0, 1.0]))
+        controller = session.link._port.controller
+        session.camera = type("Frozen", (), {"read": lambda self: (np.zeros((112, 112, 3), np.uint8), 0.0)})()
+        assert session.observe() is None and session.frames_dropped == 1
+        assert session.link._command is None  # the send loop now sends STOP
+    finally:
+        session.close()
+    assert controller.throttle == 0.0 and controller.estop_latched  # close(): STOP then ESTOP
+
+
+def test_train_writes_a_checkpoint_and_resumes_from_it(tmp_path):
+    state = tmp_path / "train.pt"
+    common = ["--train-every", "40", "--gradient-steps", "5", "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST]
+    args = ["train", "--total-steps", "100", *common]
+    out = subprocess.run([sys.executable, "-m", "deploy.jetracer", *args], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert state.exists() and (tmp_path / "train.pt.actor.cleanrl_model").exists()
+    import torch
+
+    saved = torch.load(state, weights_only=True)
+    assert saved["counters"]["step"] == 100 and saved["counters"]["updates"] == 10
+    size = len(saved["buffer"]["obs"])
+    assert size == 100 - 1 + saved["counters"]["fabricated_transitions"]  # the last step's transition is not complete
+    out = subprocess.run([sys.executable, "-m", "deploy.jetracer", "train", "--total-steps", "140", "--resume", *common],
+                         cwd=ROOT, capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert "resumed at step 100" in out.stdout
+    resumed = torch.load(state, weights_only=True)
+    assert resumed["counters"]["step"] == 140 and len(resumed["buffer"]["obs"]) > size
+    (tmp_path / "broken.pt").write_bytes(b"not a checkpoint")
+    out = subprocess.run([sys.executable, "-m", "deploy.jetracer", "train", "--resume", "--checkpoint", str(tmp_path / "broken.pt")],
+                         cwd=ROOT, capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert out.returncode != 0 and "not a readable training state" in out.stderr
+
+
+def test_run_drives_a_checkpoint_trained_by_the_jirl_script(tmp_path):
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "jirl_sac_continuous.py"), "--env-id", "JetRacerTrack-v0", "--total-timesteps", "150",
+         "--learning-starts", "100", "--hidden-size", "16", "--batch-size", "16", "--save-model", "--eval-episodes", "1",
+         "--baseline-eval-episodes", "1"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    (checkpoint,) = (tmp_path / "runs").glob("*/*.cleanrl_model")
+    rewards = jetracer.run(jetracer.Run(checkpoint=str(checkpoint), steps=40, log_dir=str(tmp_path)))
+    assert len(rewards) == 40
+    broken = tmp_path / "broken.cleanrl_model"
+    broken.write_bytes(b"garbage")
+    with pytest.raises(SystemExit, match="not a readable checkpoint"):
+        jetracer.run(jetracer.Run(checkpoint=str(broken), steps=1, log_dir=str(tmp_path)))
+
+
+def test_deploy_and_what_it_imports_run_on_python_3_8(tmp_path):
+    vermin = [str(Path(sys.executable).parent / "vermin"), "--no-tips", "--violations", "-t=3.8-"]
+    files = ["deploy", "jirl_sac_continuous.py", "envs/__init__.py", "envs/make.py", "envs/baselines.py",
+             "envs/car_interface.py", "envs/lane_follower.py", "envs/pendulum.py", "envs/lunar_lander.py"]  # fmt: skip
+    out = subprocess.run([*vermin, *files], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 0, out.stdout + out.stderr
+    newer = tmp_path / "newer.py"
+    newer.write_text("def f(name: str) -> str:\n    return name.removeprefix('x')\n")  # str.removeprefix: 3.9
+    assert subprocess.run([*vermin, str(newer)], capture_output=True).returncode != 0, "the check can fail"
