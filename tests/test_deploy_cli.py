@@ -91,5 +91,5 @@ def test_deploy_and_what_it_imports_run_on_python_3_8(tmp_path):
     out = subprocess.run([*vermin, *files], cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 0, out.stdout + out.stderr
     newer = tmp_path / "newer.py"
-    newer.write_text("def f(name: str) -> str:\n    return name.removeprefix('x')\n")  # str.removeprefix: 3.9
+    newer.write_text("def f(x):\n    match x:\n        case 1:\n            return 2\n")  # match: Python 3.10
     assert subprocess.run([*vermin, str(newer)], capture_output=True).returncode != 0, "the check can fail"
