@@ -34,6 +34,10 @@ def test_every_message_round_trips_and_frames_have_one_delimiter():
         p.encode(p.Message(p.DRIVE, 0, (40000, 0)))
 
 
+def test_the_documented_example_frame():
+    assert p.encode(p.Message(p.DRIVE, 7, (-250, 500))) == bytes.fromhex("0b 01 03 07 04 06 ff f4 01 f6 c8 00")
+
+
 def test_decoder_resynchronises_after_garbage_and_split_reads():
     decoder = p.FrameDecoder()
     # garbage glued to a frame spoils that frame (it is dropped, not misread); the next delimiter resynchronises
