@@ -1,0 +1,307 @@
+"""Reproduce the JIRL paper's Table I and Fig. 1: train every method on every env and seed, then report.
+
+    python benchmarks/reproduce.py --preset quick                      # a smoke check, minutes
+    python benchmarks/reproduce.py --preset local --envs Pendulum-v1    # this machine's budgets
+    python benchmarks/reproduce.py --preset paper --launcher slurm --slurm-partition cpu
+
+Each run (method, env, seed) trains in its own folder under --workdir and leaves a DONE marker when it
+finishes, so a second call runs only what is missing (resumable). Then the TensorBoard logs of all
+finished runs are read and written to --output:
+- `table.md`: the paper's Table I (JIRL's baseline regret in the 0-50 %, 50-<100 % and 100 % RL-control
+  phases, JIRL's total, SAC's, the best of PPO/TRPO+IL), for both paired estimators, as mean ± 95 % CI
+  over seeds, with the ratios and a paired t-test; then the final evaluation returns of every method
+  and of the baseline;
+- `fig_{env}.png`: smoothed reward per step with 95 % CI bands per method, the baseline's level, and
+  JIRL's RL-control fraction on a second axis.
+Launchers: a local pool of processes (one per core, with progress and ETA), or Slurm through submitit.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+import time
+import warnings
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPTS = {"jirl": "jirl_sac_continuous.py", "sac": "sac_continuous.py", "ppo_il": "ppo_il.py", "trpo_il": "trpo_il.py"}
+LABELS = {"jirl": "JIRL (SAC)", "sac": "SAC", "ppo_il": "PPO+IL", "trpo_il": "TRPO+IL"}
+
+# Budgets per preset and env: env steps for every method, then extra arguments per method.
+PRESETS: dict[str, dict[str, dict]] = {
+    "quick": {
+        env: {"steps": 600, "all": ["--hidden-size", "16"], "jirl": ["--learning-starts", "200", "--batch-size", "32"],
+              "sac": ["--learning-starts", "200", "--batch-size", "32"],
+              "ppo_il": ["--num-steps", "200", "--num-minibatches", "4", "--il-steps", "400", "--il-max-epochs", "5"],
+              "trpo_il": ["--num-steps", "200", "--il-steps", "400", "--il-max-epochs", "5"]}  # fmt: skip
+        for env in ("Pendulum-v1", "LunarLanderContinuous-v3", "JetRacerTrack-v0", "Walker2DBulletEnv-v0")
+    },
+    "local": {  # what one 2-core machine finishes in hours (BENCHMARKS.md)
+        "Pendulum-v1": {"steps": 40_000, "all": ["--hidden-size", "64"], "jirl": ["--learning-starts", "1000"], "sac": ["--learning-starts", "1000"]},
+        "LunarLanderContinuous-v3": {"steps": 100_000, "all": ["--hidden-size", "64"]},
+        "JetRacerTrack-v0": {"steps": 54_000, "all": ["--hidden-size", "64"]},
+        "Walker2DBulletEnv-v0": {"steps": 100_000, "all": ["--hidden-size", "256"]},
+    },
+    "paper": {  # the paper's training lengths (its figures' x axes), 64 units, 256 for Walker2D
+        "Pendulum-v1": {"steps": 280_000, "all": ["--hidden-size", "64"], "jirl": ["--gate-k", "1", "--penalty-sigma2", "0.01"]},
+        "LunarLanderContinuous-v3": {"steps": 550_000, "all": ["--hidden-size", "64"], "jirl": ["--gate-k", "1", "--penalty-sigma2", "0.1"]},
+        "JetRacerTrack-v0": {"steps": 54_000, "all": ["--hidden-size", "64"], "jirl": ["--gate-k", "10", "--penalty-sigma2", "0.01"]},
+        "Walker2DBulletEnv-v0": {"steps": 4_000_000, "all": ["--hidden-size", "256"], "jirl": ["--gate-k", "1", "--penalty-sigma2", "0.01"]},
+    },
+}
+
+
+@dataclass
+class Args:
+    envs: tuple[str, ...] = ("Pendulum-v1", "LunarLanderContinuous-v3")
+    """environments"""
+    methods: tuple[str, ...] = ("jirl", "sac", "ppo_il", "trpo_il")
+    """methods: jirl, sac, ppo_il, trpo_il"""
+    seeds: tuple[int, ...] = (1, 2, 3)
+    """seeds of every method"""
+    preset: Literal["quick", "local", "paper"] = "local"
+    """budgets: quick (smoke check), local (this machine), paper (the paper's lengths)"""
+    workdir: str = "benchmarks/results/reproduce"
+    """where runs train; a run with a DONE marker is not run again"""
+    output: str = "docs/reproduction"
+    """where table.md and the figures go"""
+    launcher: Literal["local", "slurm", "submitit-local"] = "local"
+    """local process pool, Slurm through submitit, or submitit's local executor (for testing)"""
+    workers: int = os.cpu_count() or 1
+    """parallel runs with the local launcher (each uses one torch thread)"""
+    slurm_partition: str = ""
+    """Slurm partition"""
+    slurm_timeout_min: int = 24 * 60
+    """Slurm time limit per run, minutes"""
+    report_only: bool = False
+    """skip training; only read the finished runs and write the report"""
+
+
+# -- running ------------------------------------------------------------------------------------
+def run_dir(workdir: Path, env: str, method: str, seed: int) -> Path:
+    return workdir / env / method / f"seed{seed}"
+
+
+def command(preset: dict, env: str, method: str, seed: int) -> list[str]:
+    budget = preset[env]
+    return [sys.executable, str(ROOT / SCRIPTS[method]), "--env-id", env, "--seed", str(seed), "--total-timesteps",
+            str(budget["steps"]), "--exp-name", method, "--save-model", *budget.get("all", []), *budget.get(method, [])]  # fmt: skip
+
+
+def run_one(cmd: list[str], folder: str) -> str:
+    """Train one run in `folder`; write DONE on success. Returns the folder."""
+    path = Path(folder)
+    path.mkdir(parents=True, exist_ok=True)
+    with open(path / "log.txt", "w") as log:
+        subprocess.run(cmd, cwd=path, stdout=log, stderr=subprocess.STDOUT, check=True)
+    (path / "DONE").write_text(" ".join(cmd) + "\n")
+    return folder
+
+
+def launch(args: Args) -> None:
+    workdir, preset = Path(args.workdir), PRESETS[args.preset]
+    jobs = [(command(preset, env, method, seed), str(run_dir(workdir, env, method, seed)))
+            for env in args.envs for method in args.methods for seed in args.seeds]  # fmt: skip
+    todo = [job for job in jobs if not (Path(job[1]) / "DONE").exists()]
+    print(f"{len(jobs)} runs, {len(jobs) - len(todo)} already done, {len(todo)} to run")
+    if not todo:
+        return
+    if args.launcher == "local":
+        start, finished = time.time(), 0
+        with ThreadPoolExecutor(max_workers=args.workers) as pool:
+            futures = {pool.submit(run_one, cmd, folder): folder for cmd, folder in todo}
+            for future in as_completed(futures):
+                future.result()
+                finished += 1
+                elapsed = time.time() - start
+                eta = elapsed / finished * (len(todo) - finished)
+                print(f"[{finished}/{len(todo)}] {futures[future]} done; elapsed {elapsed / 60:.1f} min, ETA {eta / 60:.1f} min", flush=True)
+        return
+    import submitit
+
+    if args.launcher == "slurm":
+        executor = submitit.AutoExecutor(folder=str(workdir / "slurm"))
+        executor.update_parameters(timeout_min=args.slurm_timeout_min, cpus_per_task=1, slurm_partition=args.slurm_partition or None)
+    else:
+        executor = submitit.LocalExecutor(folder=str(workdir / "submitit"))
+        executor.update_parameters(timeout_min=args.slurm_timeout_min)
+    submitted = []
+    for cmd, folder in todo:
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        # CommandFunction is importable by the workers; a function of this script would not be
+        submitted.append((executor.submit(submitit.helpers.CommandFunction(cmd, cwd=folder)), cmd, folder))
+    for i, (job, cmd, folder) in enumerate(submitted, 1):
+        (Path(folder) / "log.txt").write_text(job.result())
+        (Path(folder) / "DONE").write_text(" ".join(cmd) + "\n")
+        print(f"[{i}/{len(submitted)}] {folder} done (job {job.job_id})", flush=True)
+
+
+# -- reading and reporting ----------------------------------------------------------------------
+def read_scalars(folder: Path) -> dict[str, list[tuple[int, float]]]:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    (events_dir,) = {p.parent for p in (folder / "runs").glob("*/events.out.tfevents.*")}
+    accumulator = EventAccumulator(str(events_dir), size_guidance={"scalars": 0})
+    accumulator.Reload()
+    return {tag: [(e.step, e.value) for e in accumulator.Scalars(tag)] for tag in accumulator.Tags()["scalars"]}
+
+
+def last(scalars: dict, tag: str) -> float:
+    return scalars[tag][-1][1] if scalars.get(tag) else math.nan
+
+
+def mean_ci(values: list[float]) -> tuple[float, float]:
+    """Mean and the half-width of its 95 % confidence interval (Student t)."""
+    from scipy import stats
+
+    values = [v for v in values if not math.isnan(v)]
+    if not values:
+        return math.nan, math.nan
+    if len(values) == 1:
+        return values[0], math.nan
+    return float(np.mean(values)), float(stats.t.ppf(0.975, len(values) - 1) * np.std(values, ddof=1) / math.sqrt(len(values)))
+
+
+def fmt(mean: float, half: float) -> str:
+    if math.isnan(mean):
+        return "–"
+    return f"{mean:,.0f}" if math.isnan(half) else f"{mean:,.0f} ± {half:,.0f}"
+
+
+def collect(workdir: Path, envs, methods, seeds) -> dict:
+    """results[env][method][seed] = scalars of the finished runs."""
+    results: dict = {}
+    for env in envs:
+        for method in methods:
+            for seed in seeds:
+                folder = run_dir(workdir, env, method, seed)
+                if (folder / "DONE").exists():
+                    results.setdefault(env, {}).setdefault(method, {})[seed] = read_scalars(folder)
+    return results
+
+
+def table(results: dict) -> str:
+    from scipy import stats
+
+    lines = []
+    for form, tag in (("per step (the paper's Definition 1)", "baseline_regret_per_step"), ("per episode", "baseline_regret")):
+        lines += [f"### Accumulated baseline regret, {form}", "",
+                  "| env | JIRL 0–50 % RL | JIRL 50–<100 % | JIRL 100 % RL | JIRL total | SAC total | best PPO/TRPO+IL total | SAC / JIRL | best IL / JIRL | paired t-test JIRL < best IL |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+        for env, methods in results.items():
+            jirl = methods.get("jirl", {})
+            phases = [fmt(*mean_ci([last(s, f"phases/{tag}_{p}") for s in jirl.values()])) for p in ("0_50", "50_100", "100")]
+            totals = {m: {seed: last(s, f"charts/{tag}") for seed, s in runs.items()} for m, runs in methods.items()}
+            il = [m for m in ("ppo_il", "trpo_il") if m in totals]
+            best = min(il, key=lambda m: np.mean(list(totals[m].values()))) if il else None
+            j_mean = np.mean(list(totals["jirl"].values())) if "jirl" in totals else math.nan
+            ratio = lambda m: f"{np.mean(list(totals[m].values())) / j_mean:.1f}×" if m in totals and j_mean > 0 else "–"  # noqa: E731
+            test = "–"
+            if best is not None and "jirl" in totals:
+                common = sorted(set(totals["jirl"]) & set(totals[best]))
+                if len(common) >= 2:
+                    result = stats.ttest_rel([totals["jirl"][s] for s in common], [totals[best][s] for s in common], alternative="less")
+                    test = f"p = {result.pvalue:.3g} ({LABELS[best]}, {len(common)} seeds)"
+            cells = [env, *phases, *(fmt(*mean_ci(list(totals[m].values()))) if m in totals else "–" for m in ("jirl", "sac")),
+                     f"{fmt(*mean_ci(list(totals[best].values())))} ({LABELS[best]})" if best else "–",
+                     ratio("sac"), ratio(best) if best else "–", test]  # fmt: skip
+            lines.append("| " + " | ".join(cells) + " |")
+        lines.append("")
+    lines += ["### Final deterministic evaluation return", "", "| env | " + " | ".join(LABELS.values()) + " | baseline |",
+              "|---" * (len(LABELS) + 2) + "|"]  # fmt: skip
+    for env, methods in results.items():
+        cells = [fmt(*mean_ci([_mean(s.get("eval/episodic_return", [])) for s in methods[m].values()])) if m in methods else "–"
+                 for m in LABELS]  # fmt: skip
+        baseline = mean_ci([last(s, "charts/baseline_return") for runs in methods.values() for s in runs.values()])
+        lines.append(f"| {env} | " + " | ".join(cells) + f" | {fmt(*baseline)} |")
+    seeds = sorted({seed for methods in results.values() for runs in methods.values() for seed in runs})
+    lines += ["", f"Mean ± 95 % confidence interval over seeds {seeds}."]
+    return "\n".join(lines) + "\n"
+
+
+def _mean(points: list) -> float:
+    return float(np.mean([v for _, v in points])) if points else math.nan
+
+
+def reward_per_step_curve(scalars: dict, grid: np.ndarray, window: int = 5) -> np.ndarray:
+    """Each episode's reward per step, smoothed over `window` episodes, interpolated onto `grid` steps."""
+    returns, lengths = scalars.get("charts/episodic_return", []), scalars.get("charts/episodic_length", [])
+    if not returns:
+        return np.full(len(grid), np.nan)
+    steps = np.array([s for s, _ in returns], dtype=float)
+    per_step = np.array([r / max(l, 1.0) for (_, r), (_, l) in zip(returns, lengths)])
+    kernel = np.ones(min(window, len(per_step))) / min(window, len(per_step))
+    smooth = np.convolve(per_step, kernel, mode="same")
+    return np.interp(grid, steps, smooth, left=np.nan, right=np.nan)
+
+
+def figures(results: dict, output: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    for env, methods in results.items():
+        horizon = max(s["charts/episodic_return"][-1][0] for runs in methods.values() for s in runs.values() if s.get("charts/episodic_return"))
+        grid = np.linspace(0, horizon, 200)
+        fig, ax = plt.subplots(figsize=(7, 4))
+        for method, runs in methods.items():
+            curves = np.array([reward_per_step_curve(s, grid) for s in runs.values()])
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # grid points before a run's first episode are NaN
+                mean = np.nanmean(curves, 0)
+                half = 1.96 * np.nanstd(curves, 0, ddof=1) / math.sqrt(len(curves)) if len(curves) > 1 else None
+            ax.plot(grid, mean, label=LABELS[method])
+            if half is not None:
+                ax.fill_between(grid, mean - half, mean + half, alpha=0.2)
+        level = np.nanmean([last(s, "charts/baseline_reward_per_step") for runs in methods.values() for s in runs.values()])
+        ax.axhline(level, color="k", linestyle="--", label="baseline")
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel("reward per step (smoothed)")
+        if "jirl" in methods:
+            ax2 = ax.twinx()
+            fractions = [np.interp(grid, *zip(*s["charts/rl_control_fraction"])) for s in methods["jirl"].values() if s.get("charts/rl_control_fraction")]
+            if fractions:
+                ax2.plot(grid, 100 * np.mean(fractions, 0), color="tab:gray", linestyle=":", label="JIRL RL control")
+                ax2.set_ylabel("JIRL RL control (%)")
+                ax2.set_ylim(0, 105)
+        ax.legend(loc="lower right", fontsize=8)
+        ax.set_title(env)
+        fig.tight_layout()
+        path = output / f"fig_{env}.png"
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def main(args: Args) -> None:
+    unknown = [m for m in args.methods if m not in SCRIPTS] + [e for e in args.envs if e not in PRESETS[args.preset]]
+    if unknown:
+        raise SystemExit(f"reproduce: error: unknown methods or envs {unknown}")
+    if not args.report_only:
+        launch(args)
+    results = collect(Path(args.workdir), args.envs, args.methods, args.seeds)
+    if not results:
+        raise SystemExit("reproduce: no finished runs to report")
+    output = Path(args.output)
+    output.mkdir(parents=True, exist_ok=True)
+    (output / "table.md").write_text(f"Preset `{args.preset}`.\n\n" + table(results))
+    for path in figures(results, output):
+        print(f"wrote {path}")
+    print(f"wrote {output / 'table.md'}")
+
+
+if __name__ == "__main__":
+    import tyro
+
+    main(tyro.cli(Args))

@@ -1,0 +1,88 @@
+"""benchmarks/reproduce.py: the table and figures on synthetic logs with known answers, and both launchers."""
+
+import math
+import sys
+
+import numpy as np
+import pytest
+from scipy import stats
+from torch.utils.tensorboard import SummaryWriter
+
+from conftest import ROOT
+
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import reproduce  # noqa: E402
+
+JIRL_PHASES = {1: (100.0, 50.0, 0.0), 2: (120.0, 30.0, 10.0), 3: (80.0, 40.0, 5.0)}
+TOTALS = {"sac": {1: 2000.0, 2: 2400.0, 3: 1900.0}, "ppo_il": {1: 900.0, 2: 800.0, 3: 1000.0}, "trpo_il": {1: 1500.0, 2: 1600.0, 3: 1400.0}}
+
+
+def write_run(workdir, env, method, seed, total, phases=None):
+    folder = reproduce.run_dir(workdir, env, method, seed)
+    writer = SummaryWriter(str(folder / "runs" / f"{env}__{method}__{seed}"))
+    for step in range(1, 11):  # episodes of 100 steps earning -1 per step at first, then -0.5
+        writer.add_scalar("charts/episodic_return", -100.0 if step < 6 else -50.0, step * 100)
+        writer.add_scalar("charts/episodic_length", 100, step * 100)
+        writer.add_scalar("charts/rl_control_fraction", step / 10, step * 100)
+    writer.add_scalar("charts/baseline_regret_per_step", total, 1000)
+    writer.add_scalar("charts/baseline_regret", total / 2, 1000)
+    writer.add_scalar("charts/baseline_return", -80.0, 0)
+    writer.add_scalar("charts/baseline_reward_per_step", -0.8, 0)
+    for i, value in enumerate([-40.0 - seed, -60.0 - seed]):
+        writer.add_scalar("eval/episodic_return", value, i)
+    for name, value in zip(("0_50", "50_100", "100"), phases or ()):
+        writer.add_scalar(f"phases/baseline_regret_per_step_{name}", value, 1000)
+        writer.add_scalar(f"phases/baseline_regret_{name}", value / 2, 1000)
+    writer.close()
+    (folder / "DONE").write_text("synthetic\n")
+
+
+def test_table_and_figures_on_synthetic_logs(tmp_path):
+    for seed, phases in JIRL_PHASES.items():
+        write_run(tmp_path, "Pendulum-v1", "jirl", seed, sum(phases), phases)
+        for method, totals in TOTALS.items():
+            write_run(tmp_path, "Pendulum-v1", method, seed, totals[seed])
+    results = reproduce.collect(tmp_path, ["Pendulum-v1"], list(reproduce.SCRIPTS), [1, 2, 3])
+    text = reproduce.table(results)
+    row = next(line for line in text.splitlines() if line.startswith("| Pendulum-v1") and "×" in line)
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    # phase 0-50 %: mean 100, 95 % CI half-width t(0.975, 2) * sd / sqrt(3)
+    half = stats.t.ppf(0.975, 2) * np.std([100, 120, 80], ddof=1) / math.sqrt(3)
+    assert cells[1] == f"100 ± {half:,.0f}"
+    jirl_total = np.mean([sum(p) for p in JIRL_PHASES.values()])  # 145
+    assert cells[4].startswith(f"{jirl_total:,.0f} ±")
+    assert cells[6].startswith("900 ±") and "PPO+IL" in cells[6]  # the better of the two IL methods
+    assert cells[7] == f"{np.mean(list(TOTALS['sac'].values())) / jirl_total:.1f}×"
+    assert cells[8] == f"{900 / jirl_total:.1f}×"
+    p_value = stats.ttest_rel([sum(JIRL_PHASES[s]) for s in (1, 2, 3)], [TOTALS["ppo_il"][s] for s in (1, 2, 3)], alternative="less").pvalue
+    assert f"p = {p_value:.3g}" in cells[9]
+    assert "### Accumulated baseline regret, per episode" in text
+    eval_row = [line for line in text.splitlines() if line.startswith("| Pendulum-v1")][-1]
+    assert eval_row.count("-52 ± 2") == 4 and eval_row.strip().endswith("-80 ± 0 |")  # seeds: -51, -52, -53; baseline
+    paths = reproduce.figures(results, tmp_path)
+    assert paths[0].exists() and paths[0].stat().st_size > 10_000
+    curve = reproduce.reward_per_step_curve(results["Pendulum-v1"]["sac"][1], np.array([150.0, 950.0]), window=1)
+    np.testing.assert_allclose(curve, [-1.0, -0.5])
+
+
+def test_quick_preset_end_to_end_and_resume(tmp_path, capsys):
+    args = reproduce.Args(envs=("Pendulum-v1",), seeds=(1,), preset="quick", workdir=str(tmp_path / "work"),
+                          output=str(tmp_path / "out"), workers=2)  # fmt: skip
+    reproduce.main(args)
+    table = (tmp_path / "out" / "table.md").read_text()
+    assert "| Pendulum-v1 |" in table and (tmp_path / "out" / "fig_Pendulum-v1.png").exists()
+    capsys.readouterr()
+    reproduce.main(args)  # everything is done: nothing runs again
+    assert "4 already done, 0 to run" in capsys.readouterr().out
+
+
+def test_submitit_local_executor(tmp_path):
+    args = reproduce.Args(envs=("Pendulum-v1",), methods=("sac",), seeds=(2,), preset="quick", launcher="submitit-local",
+                          workdir=str(tmp_path / "work"), output=str(tmp_path / "out"))  # fmt: skip
+    reproduce.main(args)
+    assert (reproduce.run_dir(tmp_path / "work", "Pendulum-v1", "sac", 2) / "DONE").exists()
+
+
+def test_unknown_method_is_an_error(tmp_path):
+    with pytest.raises(SystemExit, match="unknown methods or envs"):
+        reproduce.main(reproduce.Args(methods=("dqn",), workdir=str(tmp_path)))
