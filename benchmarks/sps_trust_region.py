@@ -12,11 +12,10 @@ for both). Prints a markdown table with medians and the median of per-pair ratio
 from __future__ import annotations
 
 import argparse
-import statistics
-import subprocess
 import sys
-import time
 from pathlib import Path
+
+from side_by_side import compare
 
 ROOT = Path(__file__).resolve().parent.parent
 # The tuned settings our scripts resolve for each env (see README), spelled for SB3 with one env.
@@ -50,12 +49,6 @@ def command(impl: str, algo: str, env_id: str, steps: int, seed: int) -> list[st
     ]  # fmt: skip
 
 
-def timed(cmd: list[str], workdir: Path) -> float:
-    start = time.perf_counter()
-    subprocess.run(cmd, check=True, cwd=workdir, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    return time.perf_counter() - start
-
-
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--worker":
         sb3_worker(sys.argv[2], sys.argv[3], int(sys.argv[4]), int(sys.argv[5]))
@@ -72,19 +65,8 @@ def main() -> None:
     print("| algorithm | ours SPS (median) | SB3 SPS (median) | ratio ours/SB3 (median of pairs) | pairs |")
     print("|---|---|---|---|---|")
     for algo in args.algos:
-        ours, theirs = [], []
-        for rep in range(args.repeats):
-            order = ["ours", "sb3"] if rep % 2 == 0 else ["sb3", "ours"]
-            for impl in order:
-                seconds = timed(command(impl, algo, args.env_id, args.steps, rep + 1), args.workdir)
-                (ours if impl == "ours" else theirs).append(args.steps / seconds)
-        ratios = [o / t for o, t in zip(ours, theirs)]
-        print(
-            f"| {algo} | {statistics.median(ours):.0f} | {statistics.median(theirs):.0f} "
-            f"| {statistics.median(ratios):.2f} (range {min(ratios):.2f}-{max(ratios):.2f}) | {args.repeats} |",
-            flush=True,
-        )
-
+        row = compare(lambda impl, seed: command(impl, algo, args.env_id, args.steps, seed), args.steps, args.repeats, args.workdir)
+        print(f"| {algo} | {row}", flush=True)
 
 if __name__ == "__main__":
     main()

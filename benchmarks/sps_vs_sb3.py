@@ -12,11 +12,10 @@ for both). Prints a markdown table with medians and the median of the per-repeti
 from __future__ import annotations
 
 import argparse
-import statistics
-import subprocess
 import sys
-import time
 from pathlib import Path
+
+from side_by_side import compare
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -55,12 +54,6 @@ def command(impl: str, width: int, steps: int, learning_starts: int, seed: int) 
     ]  # fmt: skip
 
 
-def timed(cmd: list[str], workdir: Path) -> float:
-    start = time.perf_counter()
-    subprocess.run(cmd, check=True, cwd=workdir, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    return time.perf_counter() - start
-
-
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--worker":
         sb3_worker(*(int(v) for v in sys.argv[2:6]))
@@ -77,19 +70,8 @@ def main() -> None:
     print("| width | ours SPS (median) | SB3 SPS (median) | ratio ours/SB3 (median of pairs) | pairs |")
     print("|---|---|---|---|---|")
     for width in args.widths:
-        ours, theirs = [], []
-        for rep in range(args.repeats):
-            order = ["ours", "sb3"] if rep % 2 == 0 else ["sb3", "ours"]
-            for impl in order:
-                seconds = timed(command(impl, width, args.steps, args.learning_starts, rep + 1), args.workdir)
-                (ours if impl == "ours" else theirs).append(args.steps / seconds)
-        ratios = [o / t for o, t in zip(ours, theirs)]
-        print(
-            f"| {width} | {statistics.median(ours):.1f} | {statistics.median(theirs):.1f} "
-            f"| {statistics.median(ratios):.2f} (range {min(ratios):.2f}-{max(ratios):.2f}) | {args.repeats} |",
-            flush=True,
-        )
-
+        row = compare(lambda impl, seed: command(impl, width, args.steps, args.learning_starts, seed), args.steps, args.repeats, args.workdir)
+        print(f"| {width} | {row}", flush=True)
 
 if __name__ == "__main__":
     main()
