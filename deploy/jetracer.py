@@ -23,7 +23,9 @@ import sys
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Callable, List, Optional, Tuple, Union
+import copy
+import threading
+from typing import Callable, List, Literal, Optional, Tuple
 
 import numpy as np
 
@@ -96,6 +98,9 @@ class Train(Common):
     """pause every this many steps: STOP, train, checkpoint, resume (the paper: 400)"""
     gradient_steps: int = 200
     """gradient steps per pause (the paper: 200)"""
+    learner: Literal["pause", "background"] = "pause"
+    """pause: stop the car to train (the paper); background: a thread trains while the car drives, at the
+    same gradient steps per env step, and the car acts with a copy of the actor refreshed every --train-every steps"""
     checkpoint: str = "runs/jetracer_train.pt"
     """training state (agent, replay buffer, counters), written atomically at every pause"""
     resume: bool = False
@@ -134,6 +139,9 @@ class CarSession:
         from torch.utils.tensorboard import SummaryWriter
 
         self.args, self.period = args, 1.0 / args.control_hz
+        self.stop_requested = False
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self._on_signal)
         self.mapping = ActionMapping(min_throttle=args.min_throttle, max_throttle=args.max_throttle)
         self.safety = SafetyFilter(self.mapping, args.max_steering_rate, self.period)
         self.link = HostLink(args.port, send_hz=2.5 * args.control_hz, command_timeout=2.0 * self.period,
@@ -143,21 +151,19 @@ class CarSession:
         self.gamepad = Gamepad(args.gamepad) if args.gamepad else None
         self.writer = SummaryWriter(os.path.join(args.log_dir, f"{mode}__{int(time.time())}"))
         self.previous_action = np.array([0.0, -1.0], dtype=np.float32)
-        self.stop_requested = False
         self.frames_dropped = 0
         self.laps_logged = 0
         self.periods: deque = deque(maxlen=2000)
         self._last_tick = time.monotonic()
         self._next_tick = self._last_tick
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, self._on_signal)
         if not self.link.arm():
             self.close()
             raise RuntimeError(f"the controller on {args.port} did not arm")
 
     def _on_signal(self, *_) -> None:
-        self.link.estop()  # at once, not at the next tick
         self.stop_requested = True
+        if getattr(self, "link", None) is not None:
+            self.link.estop()  # at once, not at the next tick
 
     def observe(self) -> Optional[np.ndarray]:
         """Advance the simulator (if any) one period and read the camera; None if the frame is stale."""
@@ -348,7 +354,7 @@ def load_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
 
 
 def train(args: Train) -> dict:
-    """The on-car JIRL loop (Alg. 1-3) with pause-and-train; returns the final counters."""
+    """The on-car JIRL loop (Alg. 1-3), pause-and-train or with a background learner; returns the final counters."""
     import torch
 
     hp = args.jirl
@@ -378,18 +384,31 @@ def train(args: Train) -> dict:
     guidance = hp.guidance_steps if hp.guidance_steps is not None else args.total_steps // 2
     previous: Optional[tuple] = None  # (obs, stored action, rl_action, rl_acted)
     obs = None
+    lock = threading.Lock()  # the background learner's updates against the loop's buffer writes
+    acting = copy.deepcopy(sac.actor) if args.learner == "background" else sac.actor
+    finished = threading.Event()
+    learner = None
+    if args.learner == "background":
+        learner = threading.Thread(target=background_learner, args=(sac, rb, counters, args, lock, finished), daemon=True)
+        learner.start()
+    last_pause = counters["step"]
     try:
         while counters["step"] < args.total_steps and not session.stop_requested:
             step = counters["step"]
-            if step > 0 and step % args.train_every == 0 and previous is not None:
-                session.link.stop()  # pause-and-train: the car waits, stopped, while the agent learns
-                if rb.size >= max(hp.learning_starts, hp.batch_size):
-                    for _ in range(args.gradient_steps):
-                        losses = sac.update(rb.sample(hp.batch_size), counters["updates"])
-                        counters["updates"] += 1
-                    for name, value in losses.items():
-                        session.writer.add_scalar(f"losses/{name}", value.item(), step)
-                save_training_state(args.checkpoint, sac, rb, counters, args)
+            if step % args.train_every == 0 and step != last_pause:
+                last_pause = step
+                with lock:
+                    if args.learner == "pause":
+                        session.link.stop()  # pause-and-train: the car waits, stopped, while the agent learns
+                        if rb.size >= max(hp.learning_starts, hp.batch_size):
+                            for _ in range(args.gradient_steps):
+                                losses = sac.update(rb.sample(hp.batch_size), counters["updates"])
+                                counters["updates"] += 1
+                            for name, value in losses.items():
+                                session.writer.add_scalar(f"losses/{name}", value.item(), step)
+                    else:
+                        acting.load_state_dict(sac.actor.state_dict())
+                    save_training_state(args.checkpoint, sac, rb, counters, args)
                 session._next_tick = time.monotonic()
 
             next_obs = session.observe()
@@ -403,10 +422,11 @@ def train(args: Train) -> dict:
                 p_obs, p_action, p_rl_action, p_rl_acted, p_throttle, p_baseline = previous
                 reward = car_reward(p_throttle, off_track, session.mapping)
                 counters["baseline_regret_per_step"] += max(0.0, args.baseline_reward_per_step - reward)
-                rb.add(p_obs, p_action, reward, next_obs, off_track)
-                if not p_rl_acted and p_baseline is not None:
-                    rb.add(p_obs, p_rl_action, jirl.penalized_reward(reward, p_baseline, p_rl_action, hp.penalty_sigma2), next_obs, off_track)
-                    counters["fabricated_transitions"] += 1
+                with lock:
+                    rb.add(p_obs, p_action, reward, next_obs, off_track)
+                    if not p_rl_acted and p_baseline is not None:
+                        rb.add(p_obs, p_rl_action, jirl.penalized_reward(reward, p_baseline, p_rl_action, hp.penalty_sigma2), next_obs, off_track)
+                        counters["fabricated_transitions"] += 1
             if off_track:
                 follower.reset()
                 gate.new_episode()
@@ -417,7 +437,7 @@ def train(args: Train) -> dict:
             human = session.human_action()
             baseline_action = human if human is not None else follower(obs)
             with torch.inference_mode():
-                mean, log_std = sac.actor(torch.from_numpy(obs).unsqueeze(0))
+                mean, log_std = acting(torch.from_numpy(obs).unsqueeze(0))
                 rl_action = torch.tanh(torch.normal(mean, log_std.exp()))[0].numpy()
             mean, log_std = mean[0].numpy().astype(np.float64), log_std[0].numpy().astype(np.float64)
             if human is not None:
@@ -426,7 +446,8 @@ def train(args: Train) -> dict:
                 c = jirl.guidance_c(hp.gate_c, step, guidance, hp.guidance_schedule)
                 rl_acts = gate.decide(jirl.squashed_log_prob(mean, log_std, baseline_action), jirl.divergence(mean, log_std, baseline_action), c)
             if previous is not None and previous[3] and not rl_acts and hp.use_switch_penalty:
-                rb.add(previous[0], previous[2], hp.switch_penalty, obs, False)  # Sec. V.A
+                with lock:
+                    rb.add(previous[0], previous[2], hp.switch_penalty, obs, False)  # Sec. V.A
             counters["control_switches"] += gate.record(rl_acts)
             rl_control.append(rl_acts)
             action = rl_action if rl_acts else np.asarray(baseline_action, dtype=np.float32)
@@ -450,14 +471,31 @@ def train(args: Train) -> dict:
                 for key in ("fabricated_transitions", "control_switches", "baseline_regret_per_step", "paired_regret_per_step"):
                     session.writer.add_scalar(f"charts/{key}", counters[key], step)
             session.wait()
+        finished.set()
+        if learner is not None:
+            learner.join()
         save_training_state(args.checkpoint, sac, rb, counters, args)
     finally:
+        finished.set()
         session.close()
         if shadow is not None:
             shadow.close()
     counters["rl_control_fraction"] = sum(rl_control) / len(rl_control) if rl_control else 0.0
     print(f"train: {counters}")
     return counters
+
+
+def background_learner(sac, rb, counters: dict, args: Train, lock: threading.Lock, finished: threading.Event) -> None:
+    """Gradient steps while the car drives, keeping gradient_steps / train_every of them per env step."""
+    hp = args.jirl
+    while not finished.is_set():
+        with lock:
+            ready = rb.size >= max(hp.learning_starts, hp.batch_size) and counters["updates"] < counters["step"] * args.gradient_steps / args.train_every
+            if ready:
+                sac.update(rb.sample(hp.batch_size), counters["updates"])
+                counters["updates"] += 1
+        if not ready:
+            time.sleep(0.002)
 
 
 class _NullController:

@@ -93,3 +93,51 @@ def test_deploy_and_what_it_imports_run_on_python_3_8(tmp_path):
     newer = tmp_path / "newer.py"
     newer.write_text("def f(x):\n    match x:\n        case 1:\n            return 2\n")  # match: Python 3.10
     assert subprocess.run([*vermin, str(newer)], capture_output=True).returncode != 0, "the check can fail"
+
+
+def test_background_learner_keeps_the_gradient_step_ratio(tmp_path):
+    out = subprocess.run(
+        [sys.executable, "-m", "deploy.jetracer", "train", "--total-steps", "100", "--train-every", "40", "--gradient-steps", "10",
+         "--learner", "background", "--checkpoint", str(tmp_path / "bg.pt"), "--log-dir", str(tmp_path), *FAST],
+        cwd=ROOT, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert "'updates': 25" in out.stdout  # 100 steps x 10 / 40, trained while driving
+
+
+def test_gamepad_events_estop_and_takeover(tmp_path):
+    import os
+    import struct
+
+    path = str(tmp_path / "js0")
+    os.mkfifo(path)
+    writer_fd = os.open(path, os.O_RDWR | os.O_NONBLOCK)  # keeps the FIFO open for the reader
+    from deploy.io import Gamepad
+
+    pad = Gamepad(path)
+    event = struct.Struct("<IhBB")
+    os.write(writer_fd, event.pack(0, 32767, 2, 4) + event.pack(0, -16384, 2, 0) + event.pack(0, 0, 0x81, 0))
+    pad.poll()
+    assert pad.axes[4] == pytest.approx(1.0) and pad.axes[0] == pytest.approx(-0.5, abs=1e-4) and pad.buttons[0] is False
+    os.write(writer_fd, event.pack(5, 1, 1, 0))
+    pad.poll()
+    assert pad.buttons[0] is True
+    pad.close()
+    os.close(writer_fd)
+
+
+def test_sigterm_stops_a_drive_cleanly(tmp_path):
+    import signal
+    import time
+
+    process = subprocess.Popen([sys.executable, "-m", "deploy.jetracer", "baseline", "--steps", "2000", "--log-dir", str(tmp_path)],
+                               cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    deadline = time.monotonic() + 60
+    while not list(tmp_path.glob("baseline__*")) and time.monotonic() < deadline:  # the session is up
+        time.sleep(0.1)
+    time.sleep(1.0)
+    process.send_signal(signal.SIGTERM)
+    stdout, stderr = process.communicate(timeout=30)
+    assert process.returncode == 0, stderr
+    steps = int(stdout.split("baseline: ")[1].split(" steps")[0])
+    assert 0 < steps < 2000  # stopped early, and still reported
