@@ -260,12 +260,12 @@ def figures(results: dict, output: Path) -> list[Path]:
                 warnings.simplefilter("ignore", RuntimeWarning)  # grid points before a run's first episode are NaN
                 mean = np.nanmean(curves, 0)
                 half = 1.96 * np.nanstd(curves, 0, ddof=1) / math.sqrt(len(curves)) if len(curves) > 1 else None
-            ax.plot(grid, mean, label=LABELS[method])
+            (line,) = ax.plot(grid, mean, label=LABELS[method])
             if half is not None:
-                ax.fill_between(grid, mean - half, mean + half, alpha=0.2)
+                ax.fill_between(grid, mean - half, mean + half, alpha=0.2, color=line.get_color())
         level = np.nanmean([last(s, "charts/baseline_reward_per_step") for runs in methods.values() for s in runs.values()])
         ax.axhline(level, color="k", linestyle="--", label="baseline")
-        ax.set_xlabel("environment steps")
+        ax.set_xlabel("environment steps (PPO/TRPO+IL: after their imitation phase)")
         ax.set_ylabel("reward per step (smoothed)")
         if "jirl" in methods:
             ax2 = ax.twinx()
@@ -274,7 +274,8 @@ def figures(results: dict, output: Path) -> list[Path]:
                 ax2.plot(grid, 100 * np.mean(fractions, 0), color="tab:gray", linestyle=":", label="JIRL RL control")
                 ax2.set_ylabel("JIRL RL control (%)")
                 ax2.set_ylim(0, 105)
-        ax.legend(loc="lower right", fontsize=8)
+        handles = [h for a in fig.axes for h in a.get_legend_handles_labels()[0]]
+        ax.legend(handles=handles, loc="lower right", fontsize=8)
         ax.set_title(env)
         fig.tight_layout()
         path = output / f"fig_{env}.png"
