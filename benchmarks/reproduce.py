@@ -220,7 +220,8 @@ def table(results: dict) -> str:
     for env, methods in results.items():
         cells = [fmt(*mean_ci([_mean(s.get("eval/episodic_return", [])) for s in methods[m].values()])) if m in methods else "–"
                  for m in LABELS]  # fmt: skip
-        baseline = mean_ci([last(s, "charts/baseline_return") for runs in methods.values() for s in runs.values()])
+        per_seed = {seed: last(s, "charts/baseline_return") for runs in methods.values() for seed, s in runs.items()}
+        baseline = mean_ci(list(per_seed.values()))  # one value per seed: every method met the same seeds
         lines.append(f"| {env} | " + " | ".join(cells) + f" | {fmt(*baseline)} |")
     seeds = sorted({seed for methods in results.values() for runs in methods.values() for seed in runs})
     lines += ["", f"Mean ± 95 % confidence interval over seeds {seeds}."]
