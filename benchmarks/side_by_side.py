@@ -16,14 +16,14 @@ def timed(cmd: list[str], workdir: Path) -> float:
     return time.perf_counter() - start
 
 
-def compare(command: Callable[[str, int], list[str]], steps: int, repeats: int, workdir: Path) -> str:
-    """Run command("ours", seed) and command("sb3", seed) `repeats` times, alternating which goes first;
-    a markdown row tail: median SPS of each, median (range) of the per-pair ratios, pairs."""
+def compare(command: Callable[[str, int], list[str]], steps: int, repeats: int, workdir: Path, names: tuple[str, str] = ("ours", "sb3")) -> str:
+    """Run command(names[0], seed) and command(names[1], seed) `repeats` times, alternating which goes
+    first; a markdown row tail: median SPS of each, median (range) of the per-pair ratios first/second, pairs."""
     ours, theirs = [], []
     for rep in range(repeats):
-        for impl in (["ours", "sb3"] if rep % 2 == 0 else ["sb3", "ours"]):
+        for impl in (names if rep % 2 == 0 else names[::-1]):
             sps = steps / timed(command(impl, rep + 1), workdir)
-            (ours if impl == "ours" else theirs).append(sps)
+            (ours if impl == names[0] else theirs).append(sps)
     ratios = [o / t for o, t in zip(ours, theirs)]
     return (f"{statistics.median(ours):.1f} | {statistics.median(theirs):.1f} "
             f"| {statistics.median(ratios):.2f} (range {min(ratios):.2f}-{max(ratios):.2f}) | {repeats} |")  # fmt: skip
