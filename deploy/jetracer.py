@@ -15,7 +15,6 @@ Runs on the car's Python 3.8 (JetPack 5) and newer.
 
 from __future__ import annotations
 
-import math
 import os
 import signal
 import statistics
@@ -284,23 +283,20 @@ def run(args: Run) -> List[float]:
             _, _, action = actor.get_action(torch.from_numpy(obs).unsqueeze(0))
         return action[0].numpy()
 
-    session = CarSession(args, "run")
-    try:
-        rewards = drive(session, policy, args.steps)
-    finally:
-        session.close()
-    report(session, rewards, "run")
-    return rewards
+    return drive_and_report(args, "run", policy, args.steps)
 
 
 def baseline(args: Baseline) -> List[float]:
-    session = CarSession(args, "baseline")
-    follower = LaneFollower()
+    return drive_and_report(args, "baseline", LaneFollower(), args.steps)
+
+
+def drive_and_report(args: Common, mode: str, policy: Callable[[np.ndarray], np.ndarray], steps: int) -> List[float]:
+    session = CarSession(args, mode)
     try:
-        rewards = drive(session, follower, args.steps)
+        rewards = drive(session, policy, steps)
     finally:
         session.close()
-    report(session, rewards, "baseline")
+    report(session, rewards, mode)
     return rewards
 
 

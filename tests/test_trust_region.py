@@ -53,14 +53,20 @@ def test_fisher_vector_product_equals_the_explicit_fisher_matrix():
     torch.testing.assert_close(got, fisher @ v + 0.1 * v, rtol=1e-9, atol=1e-9)
 
 
-def test_trpo_step_respects_the_trust_region_and_improves_the_surrogate():
-    torch.manual_seed(1)
-    agent = trpo.Agent(obs_dim=3, act_dim=2, hidden_size=16)
-    obs = torch.randn(512, 3)
+def sampled_batch(seed: int, act_dim: int, hidden_size: int, n: int):
+    """A fresh agent, observations, actions sampled from it, and their log-probabilities."""
+    torch.manual_seed(seed)
+    agent = trpo.Agent(obs_dim=3, act_dim=act_dim, hidden_size=hidden_size)
+    obs = torch.randn(n, 3)
     with torch.no_grad():
         dist = trpo.policy_distribution(agent, obs)
         actions = dist.sample()
-        old_logprobs = dist.log_prob(actions).sum(1)
+    return agent, obs, actions, dist.log_prob(actions).sum(1)
+
+
+def test_trpo_step_respects_the_trust_region_and_improves_the_surrogate():
+    agent, obs, actions, old_logprobs = sampled_batch(1, act_dim=2, hidden_size=16, n=512)
+    with torch.no_grad():
         before = trpo.policy_distribution(agent, obs)
         before = torch.distributions.Normal(before.loc.clone(), before.scale.clone())
     advantages = (actions[:, 0] - actions[:, 1]) + 0.1 * torch.randn(512)  # learnable: prefer a0 > a1
@@ -80,13 +86,7 @@ def test_trpo_step_respects_the_trust_region_and_improves_the_surrogate():
 
 
 def test_line_search_keeps_the_old_policy_when_nothing_improves():
-    torch.manual_seed(2)
-    agent = trpo.Agent(obs_dim=3, act_dim=1, hidden_size=8)
-    obs = torch.randn(64, 3)
-    with torch.no_grad():
-        dist = trpo.policy_distribution(agent, obs)
-        actions = dist.sample()
-        old_logprobs = dist.log_prob(actions).sum(1)
+    agent, obs, actions, old_logprobs = sampled_batch(2, act_dim=1, hidden_size=8, n=64)
     start = torch.nn.utils.parameters_to_vector(trpo.policy_params(agent)).detach().clone()
     result = trpo.trpo_step(agent, obs, actions, old_logprobs, torch.zeros(64), trpo.Args())  # zero advantages
     assert not result["accepted"]
