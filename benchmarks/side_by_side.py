@@ -1,4 +1,4 @@
-"""Timing two implementations side by side: alternating order, fresh processes, ratios per pair."""
+"""Timing implementations side by side: rotating order, fresh processes, ratios per repetition."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import statistics
 import subprocess
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 
 def timed(cmd: list[str], workdir: Path) -> float:
@@ -16,14 +16,26 @@ def timed(cmd: list[str], workdir: Path) -> float:
     return time.perf_counter() - start
 
 
-def compare(command: Callable[[str, int], list[str]], steps: int, repeats: int, workdir: Path, names: tuple[str, str] = ("ours", "sb3")) -> str:
-    """Run command(names[0], seed) and command(names[1], seed) `repeats` times, alternating which goes
-    first; a markdown row tail: median SPS of each, median (range) of the per-pair ratios first/second, pairs."""
-    ours, theirs = [], []
+def measure(command: Callable[[str, int], list[str]], names: Sequence[str], steps: int, repeats: int, workdir: Path) -> dict[str, list[float]]:
+    """SPS of command(name, seed) for every name, `repeats` times; repetition r runs them in an order
+    rotated by r, so no implementation always goes first (or always follows the same neighbour)."""
+    sps: dict[str, list[float]] = {name: [] for name in names}
     for rep in range(repeats):
-        for impl in (names if rep % 2 == 0 else names[::-1]):
-            sps = steps / timed(command(impl, rep + 1), workdir)
-            (ours if impl == names[0] else theirs).append(sps)
-    ratios = [o / t for o, t in zip(ours, theirs)]
-    return (f"{statistics.median(ours):.1f} | {statistics.median(theirs):.1f} "
-            f"| {statistics.median(ratios):.2f} (range {min(ratios):.2f}-{max(ratios):.2f}) | {repeats} |")  # fmt: skip
+        shift = rep % len(names)
+        for name in list(names[shift:]) + list(names[:shift]):
+            sps[name].append(steps / timed(command(name, rep + 1), workdir))
+    return sps
+
+
+def ratio_cell(sps: dict[str, list[float]], name: str, reference: str) -> str:
+    """Median (range) over repetitions of SPS[name] / SPS[reference]."""
+    ratios = [a / b for a, b in zip(sps[name], sps[reference])]
+    return f"{statistics.median(ratios):.2f} (range {min(ratios):.2f}-{max(ratios):.2f})"
+
+
+def compare(command: Callable[[str, int], list[str]], steps: int, repeats: int, workdir: Path, names: tuple[str, str] = ("ours", "sb3")) -> str:
+    """Two implementations; a markdown row tail: median SPS of each, median (range) of the per-pair
+    ratios first/second, pairs."""
+    sps = measure(command, names, steps, repeats, workdir)
+    return (f"{statistics.median(sps[names[0]]):.1f} | {statistics.median(sps[names[1]]):.1f} "
+            f"| {ratio_cell(sps, *names)} | {repeats} |")  # fmt: skip

@@ -1,21 +1,24 @@
-"""Training speed of sac_continuous.py against Stable-Baselines3's SAC, side by side.
+"""Training speed of sac_continuous.py and jirl_sac_continuous.py against Stable-Baselines3's SAC.
 
-Both train Pendulum-v1 with the same hyperparameters (one learning rate for actor, critics and
-entropy coefficient, one actor update per env step, batch 256, the same warm-up), one torch
-thread each, alternating which runs first, for every network width asked. Each run is a fresh
-process; the reported SPS is env steps over the process's whole wall time (imports included,
-for both). Prints a markdown table with medians and the median of the per-repetition ratios.
+All train Pendulum-v1 with the same hyperparameters (one learning rate for actor, critics and entropy
+coefficient, one actor update per env step, batch 256, the same warm-up), one torch thread each, in
+fresh processes whose order rotates every repetition, for every network width asked. SPS is env steps
+over the process's whole wall time (imports included, for all). `--before REV` adds sac_continuous.py
+as it was at git revision REV (copied out alone, so it runs without envs/), for a before/after ratio
+measured in the same run. Prints a markdown table: median SPS and the median of per-repetition ratios.
 
-    python benchmarks/sps_vs_sb3.py --widths 256 64 --repeats 3
+    python benchmarks/sps_vs_sb3.py --widths 256 64 --repeats 3 --before 66f0bdb
 """
 
 from __future__ import annotations
 
 import argparse
+import statistics
+import subprocess
 import sys
 from pathlib import Path
 
-from side_by_side import compare
+from side_by_side import measure, ratio_cell
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -43,11 +46,12 @@ def sb3_worker(width: int, steps: int, learning_starts: int, seed: int) -> None:
     model.learn(total_timesteps=steps)
 
 
-def command(impl: str, width: int, steps: int, learning_starts: int, seed: int) -> list[str]:
+def command(impl: str, width: int, steps: int, learning_starts: int, seed: int, workdir: Path) -> list[str]:
     if impl == "sb3":
         return [sys.executable, __file__, "--worker", str(width), str(steps), str(learning_starts), str(seed)]
+    script = workdir / "sac_before.py" if impl == "sac_before" else ROOT / f"{impl}.py"
     return [
-        sys.executable, str(ROOT / "sac_continuous.py"), "--env-id", "Pendulum-v1", "--seed", str(seed),
+        sys.executable, str(script), "--env-id", "Pendulum-v1", "--seed", str(seed),
         "--total-timesteps", str(steps), "--learning-starts", str(learning_starts), "--batch-size", "256",
         "--hidden-size", str(width), "--policy-lr", "3e-4", "--q-lr", "3e-4", "--policy-frequency", "1",
         "--regret-estimator", "off", "--torch-threads", "1",
@@ -60,18 +64,32 @@ def main() -> None:
         return
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--widths", type=int, nargs="+", default=[256, 64])
-    parser.add_argument("--steps", type=int, default=3000)
+    parser.add_argument("--steps", type=int, default=5000)
     parser.add_argument("--learning-starts", type=int, default=500)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--before", default="", help="git revision of an earlier sac_continuous.py to time too")
     parser.add_argument("--workdir", type=Path, default=ROOT / "benchmarks" / "results" / "sps_vs_sb3")
     args = parser.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
+    names = ["sac_continuous", "jirl_sac_continuous", "sb3"]
+    if args.before:
+        source = subprocess.run(["git", "show", f"{args.before}:sac_continuous.py"], cwd=ROOT, check=True, capture_output=True, text=True).stdout
+        (args.workdir / "sac_before.py").write_text(source)
+        names.append("sac_before")
     print(f"Pendulum-v1, {args.steps} steps, learning starts {args.learning_starts}, batch 256, 1 thread")
-    print("| width | ours SPS (median) | SB3 SPS (median) | ratio ours/SB3 (median of pairs) | pairs |")
-    print("|---|---|---|---|---|")
+    header = "| width | SAC SPS | JIRL SPS | SB3 SPS | SAC/SB3 | JIRL/SB3 |"
+    if args.before:
+        header += f" SAC at {args.before} SPS | SAC now/before |"
+    print(header + " reps |")
+    print("|---" * (header.count("|") - 1) + "|---|")
     for width in args.widths:
-        row = compare(lambda impl, seed: command(impl, width, args.steps, args.learning_starts, seed), args.steps, args.repeats, args.workdir)
-        print(f"| {width} | {row}", flush=True)
+        sps = measure(lambda impl, seed: command(impl, width, args.steps, args.learning_starts, seed, args.workdir), names, args.steps, args.repeats, args.workdir)
+        row = f"| {width} | " + " | ".join(f"{statistics.median(sps[n]):.1f}" for n in names[:3])
+        row += f" | {ratio_cell(sps, 'sac_continuous', 'sb3')} | {ratio_cell(sps, 'jirl_sac_continuous', 'sb3')} |"
+        if args.before:
+            row += f" {statistics.median(sps['sac_before']):.1f} | {ratio_cell(sps, 'sac_continuous', 'sac_before')} |"
+        print(row + f" {args.repeats} |", flush=True)
+
 
 if __name__ == "__main__":
     main()

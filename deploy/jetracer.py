@@ -36,7 +36,7 @@ from deploy.link import HostLink  # noqa: E402
 from envs.car_interface import OBS_SIZE, ActionMapping, action_to_commands, preprocess  # noqa: E402
 from envs.lane_follower import LaneFollower  # noqa: E402
 
-TRAIN_STATE_FORMAT = "jirl-car-training-v1"
+TRAIN_STATE_FORMAT = "jirl-car-training-v2"  # v2: the agent's twin critics as one ensemble
 
 
 @dataclass
@@ -326,7 +326,7 @@ def save_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
     torch.save(state, tmp)
     os.replace(tmp, path)
     spaces = CarSpaces()
-    jirl.save_checkpoint(f"{path}.actor.cleanrl_model.tmp", "JetRacer", spaces, sac.actor, sac.qf1, sac.qf2, args.jirl)
+    jirl.save_checkpoint(f"{path}.actor.cleanrl_model.tmp", "JetRacer", spaces, sac.actor, sac.qf, args.jirl)
     os.replace(f"{path}.actor.cleanrl_model.tmp", f"{path}.actor.cleanrl_model")
 
 

@@ -82,10 +82,10 @@ def test_end_to_end_logs_saves_and_evaluates(tmp_path, sac):
 
 def test_checkpoint_round_trip_and_errors(tmp_path, sac):
     env = sac.make_env("Pendulum-v1", 0)
-    actor, qf1, qf2 = sac.Actor(3, 1, 16), sac.SoftQNetwork(3, 1, 16), sac.SoftQNetwork(3, 1, 16)
+    actor, qf = sac.Actor(3, 1, 16), sac.SoftQNetwork(3, 1, 16)
     args = sac.Args(hidden_size=16)
     path = tmp_path / "model.cleanrl_model"
-    sac.save_checkpoint(str(path), "Pendulum-v1", env, actor, qf1, qf2, args)
+    sac.save_checkpoint(str(path), "Pendulum-v1", env, actor, qf, args)
     restored = sac.actor_from_checkpoint(sac.load_checkpoint(str(path)), env)
     x = torch.randn(5, 3)
     torch.testing.assert_close(restored(x), actor(x))
@@ -96,7 +96,7 @@ def test_checkpoint_round_trip_and_errors(tmp_path, sac):
         sac.load_checkpoint(str(corrupt))
     other = tmp_path / "other.pt"
     torch.save({"weights": torch.zeros(2)}, other)
-    with pytest.raises(ValueError, match="not a jirl-sac-checkpoint-v1 checkpoint"):
+    with pytest.raises(ValueError, match="not a jirl-sac-checkpoint-v2 checkpoint"):
         sac.load_checkpoint(str(other))
     lander = sac.make_env("LunarLanderContinuous-v3", 0)
     with pytest.raises(ValueError, match="checkpoint expects 3 observations and 1 actions"):
