@@ -27,7 +27,7 @@ import warnings
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Literal, Optional
 
 import numpy as np
 
@@ -35,6 +35,9 @@ ROOT = Path(__file__).resolve().parent.parent
 SCRIPTS = {"jirl": "jirl_sac_continuous.py", "sac": "sac_continuous.py", "ppo_il": "ppo_il.py", "trpo_il": "trpo_il.py"}
 LABELS = {"jirl": "JIRL (SAC)", "sac": "SAC", "ppo_il": "PPO+IL", "trpo_il": "TRPO+IL"}
 
+# On the track an early agent leaves the lane within tens of steps while the paired shadow env drives
+# the baseline's full 2000: the shadow rollouts would dominate the run (README, Baseline regret).
+TRACK_REGRET = ["--regret-estimator", "unpaired"]
 # Budgets per preset and env: env steps for every method, then extra arguments per method.
 PRESETS: dict[str, dict[str, dict]] = {
     "quick": {
@@ -47,13 +50,13 @@ PRESETS: dict[str, dict[str, dict]] = {
     "local": {  # what one 2-core machine finishes in hours (BENCHMARKS.md)
         "Pendulum-v1": {"steps": 40_000, "all": ["--hidden-size", "64"], "jirl": ["--learning-starts", "1000"], "sac": ["--learning-starts", "1000"]},
         "LunarLanderContinuous-v3": {"steps": 100_000, "all": ["--hidden-size", "64"]},
-        "JetRacerTrack-v0": {"steps": 54_000, "all": ["--hidden-size", "64"]},
+        "JetRacerTrack-v0": {"steps": 54_000, "all": ["--hidden-size", "64", *TRACK_REGRET]},
         "Walker2DBulletEnv-v0": {"steps": 100_000, "all": ["--hidden-size", "256"]},
     },
     "paper": {  # the paper's training lengths (its figures' x axes), 64 units, 256 for Walker2D
         "Pendulum-v1": {"steps": 280_000, "all": ["--hidden-size", "64"], "jirl": ["--gate-k", "1", "--penalty-sigma2", "0.01"]},
         "LunarLanderContinuous-v3": {"steps": 550_000, "all": ["--hidden-size", "64"], "jirl": ["--gate-k", "1", "--penalty-sigma2", "0.1"]},
-        "JetRacerTrack-v0": {"steps": 54_000, "all": ["--hidden-size", "64"], "jirl": ["--gate-k", "10", "--penalty-sigma2", "0.01"]},
+        "JetRacerTrack-v0": {"steps": 54_000, "all": ["--hidden-size", "64", *TRACK_REGRET], "jirl": ["--gate-k", "10", "--penalty-sigma2", "0.01"]},
         "Walker2DBulletEnv-v0": {"steps": 4_000_000, "all": ["--hidden-size", "256"], "jirl": ["--gate-k", "1", "--penalty-sigma2", "0.01"]},
     },
 }
@@ -69,6 +72,8 @@ class Args:
     """seeds of every method"""
     preset: Literal["quick", "local", "paper"] = "local"
     """budgets: quick (smoke check), local (this machine), paper (the paper's lengths)"""
+    steps: Optional[int] = None
+    """env steps of every run instead of the preset's (the report states each env's budget)"""
     workdir: str = "benchmarks/results/reproduce"
     """where runs train; a run with a DONE marker is not run again"""
     output: str = "docs/reproduction"
@@ -90,10 +95,16 @@ def run_dir(workdir: Path, env: str, method: str, seed: int) -> Path:
     return workdir / env / method / f"seed{seed}"
 
 
-def command(preset: dict, env: str, method: str, seed: int) -> list[str]:
+def command(preset: dict, env: str, method: str, seed: int, steps: Optional[int] = None) -> list[str]:
     budget = preset[env]
     return [sys.executable, str(ROOT / SCRIPTS[method]), "--env-id", env, "--seed", str(seed), "--total-timesteps",
-            str(budget["steps"]), "--exp-name", method, "--save-model", *budget.get("all", []), *budget.get(method, [])]  # fmt: skip
+            str(steps or budget["steps"]), "--exp-name", method, "--save-model", *budget.get("all", []), *budget.get(method, [])]  # fmt: skip
+
+
+def done_arguments(folder: Path) -> Optional[list[str]]:
+    """The arguments a finished run was trained with (after interpreter and script), or None if unfinished."""
+    marker = folder / "DONE"
+    return marker.read_text().split()[2:] if marker.exists() else None
 
 
 def run_one(cmd: list[str], folder: str) -> str:
@@ -108,9 +119,12 @@ def run_one(cmd: list[str], folder: str) -> str:
 
 def launch(args: Args) -> None:
     workdir, preset = Path(args.workdir), PRESETS[args.preset]
-    jobs = [(command(preset, env, method, seed), str(run_dir(workdir, env, method, seed)))
+    jobs = [(command(preset, env, method, seed, args.steps), str(run_dir(workdir, env, method, seed)))
             for env in args.envs for method in args.methods for seed in args.seeds]  # fmt: skip
-    todo = [job for job in jobs if not (Path(job[1]) / "DONE").exists()]
+    clashes = [folder for cmd, folder in jobs if done_arguments(Path(folder)) not in (None, cmd[2:])]
+    if clashes:  # a finished run made with another budget or other arguments is not silently reused
+        raise SystemExit(f"reproduce: error: {len(clashes)} finished runs used other arguments (e.g. {clashes[0]}); use another --workdir")
+    todo = [job for job in jobs if done_arguments(Path(job[1])) is None]
     print(f"{len(jobs)} runs, {len(jobs) - len(todo)} already done, {len(todo)} to run")
     if not todo:
         return
@@ -186,6 +200,21 @@ def collect(workdir: Path, envs, methods, seeds) -> dict:
                 if (folder / "DONE").exists():
                     results.setdefault(env, {}).setdefault(method, {})[seed] = read_scalars(folder)
     return results
+
+
+def budgets(workdir: Path, results: dict) -> str:
+    """One sentence: each env's env steps per run and seeds per method, read from the runs themselves."""
+    parts = []
+    for env, methods in results.items():
+        steps = set()
+        for method, runs in methods.items():
+            for seed in runs:
+                arguments = done_arguments(run_dir(workdir, env, method, seed)) or []
+                if "--total-timesteps" in arguments:
+                    steps.add(int(arguments[arguments.index("--total-timesteps") + 1]))
+        seeds = "/".join(str(len(runs)) for runs in methods.values())
+        parts.append(f"{env}: {', '.join(f'{n:,}' for n in sorted(steps))} env steps per run, {seeds} seeds ({'/'.join(LABELS[m] for m in methods)})")
+    return "Budgets: " + "; ".join(parts) + "."
 
 
 def table(results: dict) -> str:
@@ -297,7 +326,7 @@ def main(args: Args) -> None:
         raise SystemExit("reproduce: no finished runs to report")
     output = Path(args.output)
     output.mkdir(parents=True, exist_ok=True)
-    (output / "table.md").write_text(f"Preset `{args.preset}`.\n\n" + table(results))
+    (output / "table.md").write_text(f"Preset `{args.preset}`. {budgets(Path(args.workdir), results)}\n\n" + table(results))
     for path in figures(results, output):
         print(f"wrote {path}")
     print(f"wrote {output / 'table.md'}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import statistics
 import subprocess
 import time
@@ -9,22 +10,29 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 
-def timed(cmd: list[str], workdir: Path) -> float:
-    """Wall-clock seconds of one process, start to exit (imports included)."""
+def timed(cmd: list[str], workdir: Path) -> tuple[float, float]:
+    """Wall-clock seconds of one process, start to exit (imports included), and the last `SPS: x` it
+    printed (its training loop's own rate, imports and setup excluded; NaN if it printed none)."""
     start = time.perf_counter()
-    subprocess.run(cmd, check=True, cwd=workdir, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    return time.perf_counter() - start
+    result = subprocess.run(cmd, check=True, cwd=workdir, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    seconds = time.perf_counter() - start
+    printed = re.findall(r"^SPS: ([0-9.]+)$", result.stdout, flags=re.MULTILINE)
+    return seconds, float(printed[-1]) if printed else float("nan")
 
 
-def measure(command: Callable[[str, int], list[str]], names: Sequence[str], steps: int, repeats: int, workdir: Path) -> dict[str, list[float]]:
-    """SPS of command(name, seed) for every name, `repeats` times; repetition r runs them in an order
-    rotated by r, so no implementation always goes first (or always follows the same neighbour)."""
-    sps: dict[str, list[float]] = {name: [] for name in names}
+def measure(command: Callable[[str, int], list[str]], names: Sequence[str], steps: int, repeats: int, workdir: Path) -> tuple[dict[str, list[float]], dict[str, list[float]]]:
+    """SPS of command(name, seed) for every name, `repeats` times: over the whole process, and as the
+    process itself reported it. Repetition r runs them in an order rotated by r, so no implementation
+    always goes first (or always follows the same neighbour)."""
+    whole: dict[str, list[float]] = {name: [] for name in names}
+    in_loop: dict[str, list[float]] = {name: [] for name in names}
     for rep in range(repeats):
         shift = rep % len(names)
         for name in list(names[shift:]) + list(names[:shift]):
-            sps[name].append(steps / timed(command(name, rep + 1), workdir))
-    return sps
+            seconds, reported = timed(command(name, rep + 1), workdir)
+            whole[name].append(steps / seconds)
+            in_loop[name].append(reported)
+    return whole, in_loop
 
 
 def ratio_cell(sps: dict[str, list[float]], name: str, reference: str) -> str:
@@ -36,6 +44,6 @@ def ratio_cell(sps: dict[str, list[float]], name: str, reference: str) -> str:
 def compare(command: Callable[[str, int], list[str]], steps: int, repeats: int, workdir: Path, names: tuple[str, str] = ("ours", "sb3")) -> str:
     """Two implementations; a markdown row tail: median SPS of each, median (range) of the per-pair
     ratios first/second, pairs."""
-    sps = measure(command, names, steps, repeats, workdir)
+    sps, _ = measure(command, names, steps, repeats, workdir)
     return (f"{statistics.median(sps[names[0]]):.1f} | {statistics.median(sps[names[1]]):.1f} "
             f"| {ratio_cell(sps, *names)} | {repeats} |")  # fmt: skip

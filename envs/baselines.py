@@ -20,6 +20,7 @@ from envs.lane_follower import LaneFollower
 from envs.lunar_lander import lunar_lander_expert, lunar_lander_slow_descent
 from envs.make import make_env
 from envs.pendulum import pendulum_swing_up
+from envs.walker2d import Walker2DBaseline
 
 Baseline = Callable[[np.ndarray], Optional[np.ndarray]]
 
@@ -28,6 +29,7 @@ BASELINES: dict[str, Baseline | type] = {
     "Pendulum-v1": pendulum_swing_up,
     "LunarLanderContinuous-v3": lunar_lander_slow_descent,
     "JetRacerTrack-v0": LaneFollower,
+    "Walker2DBulletEnv-v0": Walker2DBaseline,
 }
 # Strong controllers, for tests and imitation checks; not baselines to beat.
 EXPERTS: dict[str, Baseline] = {

@@ -74,6 +74,9 @@ def test_quick_preset_end_to_end_and_resume(tmp_path, capsys):
     capsys.readouterr()
     reproduce.main(args)  # everything is done: nothing runs again
     assert "4 already done, 0 to run" in capsys.readouterr().out
+    assert "Budgets: Pendulum-v1: 600 env steps per run, 1/1/1/1 seeds" in table
+    with pytest.raises(SystemExit, match="4 finished runs used other arguments"):  # another budget, same workdir
+        reproduce.main(reproduce.Args(**{**vars(args), "steps": 700}))
 
 
 def test_submitit_local_executor(tmp_path):

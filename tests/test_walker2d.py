@@ -1,0 +1,81 @@
+"""The Walker2D baseline: the shipped SAC actor, run deterministically with torch alone."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from envs import get_baseline, make_env, rollout
+from envs.walker2d import WEIGHTS, Walker2DBaseline, export, load_policy
+
+from conftest import ROOT, load_script
+
+# BENCHMARKS.md: the shipped baseline's mean return over 10 episodes (seeds 0-9, min 1523.2, max 1569.6)
+MEASURED_RETURN = 1542.8
+
+
+def test_shipped_weights_say_how_they_were_made():
+    _, low, high, metadata = load_policy(WEIGHTS)
+    assert "sac_continuous.py" in metadata["command"] and "Walker2DBulletEnv-v0" in metadata["command"]
+    assert len(metadata["commit"]) >= 7 and metadata["total_timesteps"] > 0
+    np.testing.assert_array_equal(low, -np.ones(6))
+    np.testing.assert_array_equal(high, np.ones(6))
+    assert WEIGHTS.stat().st_size < 1_000_000, "small enough to commit"
+
+
+def test_action_is_the_actor_mean_computed_independently():
+    baseline = get_baseline("Walker2DBulletEnv-v0")
+    assert isinstance(baseline, Walker2DBaseline)
+    weights = {k: v.double().numpy() for k, v in torch.load(WEIGHTS, weights_only=True)["policy"].items()}
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        obs = rng.normal(size=22)
+        h = np.maximum(weights["fc1.weight"] @ obs + weights["fc1.bias"], 0.0)
+        h = np.maximum(weights["fc2.weight"] @ h + weights["fc2.bias"], 0.0)
+        expected = np.tanh(weights["fc_mean.weight"] @ h + weights["fc_mean.bias"])  # action bounds are [-1, 1]
+        np.testing.assert_allclose(baseline(obs), expected, atol=1e-5)
+    with pytest.raises(ValueError, match="expects 22 observations"):
+        baseline(np.zeros(3))
+
+
+def test_baseline_walks():
+    env = make_env("Walker2DBulletEnv-v0")
+    rewards = rollout(env, get_baseline("Walker2DBulletEnv-v0"), seed=0)
+    env.close()
+    assert len(rewards) == 1000 and rewards.sum() > 0.95 * MEASURED_RETURN, f"return {rewards.sum():.1f}, {len(rewards)} steps"
+
+
+def test_bad_files_give_clear_errors_and_lose_nothing(tmp_path):
+    corrupt = tmp_path / "weights.pt"
+    corrupt.write_bytes(WEIGHTS.read_bytes()[:300])
+    with pytest.raises(ValueError, match="not readable policy weights"):
+        Walker2DBaseline(corrupt)
+    other = tmp_path / "other.pt"
+    torch.save({"format": "something-else"}, other)
+    with pytest.raises(ValueError, match="not a jirl-policy-weights-v1 file"):
+        load_policy(other)
+    with pytest.raises(ValueError, match="not a sac_continuous.py checkpoint"):
+        export(other, tmp_path / "out.pt")
+    assert corrupt.exists() and other.exists() and not (tmp_path / "out.pt").exists()
+
+
+def test_export_round_trip_from_a_sac_checkpoint(tmp_path):
+    """A checkpoint written by sac_continuous.py exports to weights that act like its actor."""
+    sac = load_script("sac_continuous")
+    env = make_env("Walker2DBulletEnv-v0")
+    actor, qf = sac.Actor(22, 6, 16), sac.SoftQNetwork(22, 6, 16)
+    checkpoint = tmp_path / "model.cleanrl_model"
+    sac.save_checkpoint(str(checkpoint), "Walker2DBulletEnv-v0", env, actor, qf, sac.Args(hidden_size=16, total_timesteps=123))
+    out = tmp_path / "weights.pt"
+    result = subprocess.run([sys.executable, "-m", "envs.walker2d", "export", str(checkpoint), "--out", str(out), "--command", "cmd", "--commit", "abc1234"],
+                            cwd=ROOT, capture_output=True, text=True)  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    baseline = Walker2DBaseline(out)
+    assert baseline.metadata == {"seed": 1, "total_timesteps": 123, "command": "cmd", "commit": "abc1234"}
+    obs = np.random.default_rng(1).normal(size=22).astype(np.float32)
+    with torch.no_grad():
+        _, _, expected = actor.get_action(torch.from_numpy(obs).unsqueeze(0))
+    np.testing.assert_allclose(baseline(obs), expected[0].numpy(), atol=1e-6)
+    env.close()
