@@ -6,15 +6,14 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
+from update_speed import training_step
+
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 
 
 def main() -> None:
@@ -23,24 +22,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--rows", type=int, default=12)
     args = parser.parse_args()
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("sac_continuous", ROOT / "sac_continuous.py")
-    sac = importlib.util.module_from_spec(spec)
-    sys.modules["sac_continuous"] = sac
-    spec.loader.exec_module(sac)
-    torch.set_num_threads(1)
-    agent = sac.SoftActorCritic(3, 1, sac.Args(hidden_size=args.width))
-    rb = sac.ReplayBuffer(100_000, 3, 1, 0)
-    rng = np.random.default_rng(0)
-    for _ in range(10_000):
-        rb.add(rng.normal(size=3), rng.uniform(-1, 1, 1), -1.0, rng.normal(size=3), False)
-    obs = torch.zeros(1, 3)
-
-    def step(i: int) -> None:
-        with torch.inference_mode():
-            agent.actor.get_action(obs)
-        agent.update(rb.sample(256), i)
+    # the script's default delayed actor update (policy_frequency 2), as in training
+    step = training_step(str(ROOT / "sac_continuous.py"), args.width, policy_frequency=2)
 
     for i in range(30):
         step(i)

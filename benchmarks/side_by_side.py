@@ -47,3 +47,12 @@ def compare(command: Callable[[str, int], list[str]], steps: int, repeats: int, 
     sps, _ = measure(command, names, steps, repeats, workdir)
     return (f"{statistics.median(sps[names[0]]):.1f} | {statistics.median(sps[names[1]]):.1f} "
             f"| {ratio_cell(sps, *names)} | {repeats} |")  # fmt: skip
+
+
+def script_at(revision: str, dest: Path, script: str = "sac_continuous.py") -> Path:
+    """Write `script` as it was at git `revision` to dest/sac_before.py (run alone, without envs/)."""
+    root = Path(__file__).resolve().parent.parent
+    source = subprocess.run(["git", "show", f"{revision}:{script}"], cwd=root, check=True, capture_output=True, text=True).stdout
+    path = dest / "sac_before.py"
+    path.write_text(source)
+    return path

@@ -15,12 +15,11 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
 
-from side_by_side import measure, ratio_cell
+from side_by_side import measure, ratio_cell, script_at
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -76,8 +75,7 @@ def main() -> None:
     args.workdir.mkdir(parents=True, exist_ok=True)
     names = ["sac_continuous", "jirl_sac_continuous", "sb3"]
     if args.before:
-        source = subprocess.run(["git", "show", f"{args.before}:sac_continuous.py"], cwd=ROOT, check=True, capture_output=True, text=True).stdout
-        (args.workdir / "sac_before.py").write_text(source)
+        script_at(args.before, args.workdir)
         names.append("sac_before")
     print(f"Pendulum-v1, {args.steps} steps, learning starts {args.learning_starts}, batch 256, 1 thread")
     header = "| width | SPS | SAC | JIRL | SB3 | SAC/SB3 | JIRL/SB3 |"

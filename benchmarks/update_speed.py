@@ -19,11 +19,16 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Callable
+
+from side_by_side import script_at
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def ours_worker(script: str, width: int, steps: int) -> float:
+def training_step(script: str, width: int, policy_frequency: int = 1) -> Callable[[int], None]:
+    """step(i) for the SAC script at `script`: one sampled action for a single observation and one
+    update (batch 256) from a buffer of 10,000 random Pendulum-shaped transitions."""
     import numpy as np
     import torch
 
@@ -33,7 +38,7 @@ def ours_worker(script: str, width: int, steps: int) -> float:
     spec.loader.exec_module(sac)
     torch.set_num_threads(1)
     torch.manual_seed(0)
-    args = sac.Args(hidden_size=width, batch_size=256, policy_lr=3e-4, q_lr=3e-4, policy_frequency=1)
+    args = sac.Args(hidden_size=width, batch_size=256, policy_lr=3e-4, q_lr=3e-4, policy_frequency=policy_frequency)
     agent = sac.SoftActorCritic(3, 1, args)
     rb = sac.ReplayBuffer(100_000, 3, 1, 0)
     rng = np.random.default_rng(0)
@@ -46,6 +51,11 @@ def ours_worker(script: str, width: int, steps: int) -> float:
             agent.actor.get_action(obs)
         agent.update(rb.sample(256), i)
 
+    return step
+
+
+def ours_worker(script: str, width: int, steps: int) -> float:
+    step = training_step(script, width)
     for i in range(50):
         step(i)
     start = time.perf_counter()
@@ -96,8 +106,7 @@ def main() -> None:
     args.workdir.mkdir(parents=True, exist_ok=True)
     names = ["sac", "sb3"]
     if args.before:
-        source = subprocess.run(["git", "show", f"{args.before}:sac_continuous.py"], cwd=ROOT, check=True, capture_output=True, text=True).stdout
-        (args.workdir / "sac_before.py").write_text(source)
+        script_at(args.before, args.workdir)
         names.append("sac_before")
     print(f"ms per training step (acting + one update, batch 256), {args.steps} steps per process, 1 thread")
     header = "| width | ours | SB3 | SB3/ours |" + (f" ours at {args.before} | before/now |" if args.before else "")
