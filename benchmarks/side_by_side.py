@@ -1,8 +1,11 @@
-"""Timing implementations side by side: rotating order, fresh processes, ratios per repetition."""
+"""Helpers of the benchmarks: timing implementations side by side (rotating order, fresh processes,
+ratios per repetition), an earlier revision of a script, a script loaded as a module."""
 
 from __future__ import annotations
 
+import importlib.util
 import re
+import sys
 import statistics
 import subprocess
 import time
@@ -56,3 +59,12 @@ def script_at(revision: str, dest: Path, script: str = "sac_continuous.py") -> P
     path = dest / "sac_before.py"
     path.write_text(source)
     return path
+
+
+def load_module(script: str, name: str = "sac_under_test"):
+    """Import the algorithm script at `script` as a module (its main block does not run)."""
+    spec = importlib.util.spec_from_file_location(name, script)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses with postponed annotations look their module up here
+    spec.loader.exec_module(module)
+    return module

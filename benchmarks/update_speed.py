@@ -13,7 +13,6 @@ medians and per-repetition ratios.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import statistics
 import subprocess
 import sys
@@ -21,7 +20,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from side_by_side import script_at
+from side_by_side import load_module, script_at
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -32,10 +31,7 @@ def training_step(script: str, width: int, policy_frequency: int = 1) -> Callabl
     import numpy as np
     import torch
 
-    spec = importlib.util.spec_from_file_location("sac_under_test", script)
-    sac = importlib.util.module_from_spec(spec)
-    sys.modules["sac_under_test"] = sac
-    spec.loader.exec_module(sac)
+    sac = load_module(script)
     torch.set_num_threads(1)
     torch.manual_seed(0)
     args = sac.Args(hidden_size=width, batch_size=256, policy_lr=3e-4, q_lr=3e-4, policy_frequency=policy_frequency)
