@@ -283,7 +283,7 @@ class SoftActorCritic:
         self.qf_target = SoftQNetwork(obs_dim, act_dim, args.hidden_size)
         self.qf_target.load_state_dict(self.qf.state_dict())
         self.q_params, self.q_target_params = list(self.qf.parameters()), list(self.qf_target.parameters())
-        # fused: one kernel per optimizer step instead of a loop over parameters (2-3x faster on CPU)
+        # fused: one kernel per optimizer step instead of a loop over parameters (2.4-2.7x faster on CPU, BENCHMARKS.md)
         self.q_optimizer = optim.Adam(self.q_params, lr=args.q_lr, fused=FUSED_ADAM)
         # Automatic entropy tuning
         self.target_entropy = -float(act_dim)
