@@ -96,8 +96,12 @@ class Args:
     """the gate's window K (Alg. 3): steps whose densities and divergences are multiplied"""
     guidance_steps: Optional[int] = None
     """C decays over this many steps and is 0 after, handing control to the agent (default: half of --total-timesteps; 0: the paper's constant C)"""
-    guidance_schedule: Literal["geometric", "linear"] = "geometric"
-    """geometric: log C falls linearly to log 1e-6, then C = 0; linear: C falls linearly to 0"""
+    guidance_schedule: Literal["geometric", "linear", "earned"] = "geometric"
+    """geometric: log C falls linearly to log 1e-6, then C = 0; linear: C falls linearly to 0; earned: geometric, advancing only while the agent's recent episodes keep up with the baseline"""
+    handover_episodes: int = 5
+    """earned schedule: the episodes whose mean return is compared with the baseline's"""
+    handover_tolerance: float = 0.1
+    """earned schedule: the recent mean return may fall this fraction of |baseline return| short and still advance"""
     penalty_sigma2: float = 0.1
     """the penalized reward's variance sigma^2 (Alg. 2), in policy action units [-1, 1]"""
     switch_penalty: float = -1.0
@@ -249,6 +253,39 @@ def guidance_c(c: float, step: int, guidance_steps: int, schedule: str) -> float
     if schedule == "linear":
         return c * (1.0 - progress)
     return c * (GUIDANCE_C_END / c) ** progress if c > 0 else 0.0
+
+
+class EarnedGuidance:
+    """The geometric schedule whose progress is earned: after each episode it moves forward by the
+    episode's length when the mean return of the last `window` episodes is within `tolerance` of the
+    baseline's on the same episodes, else back by as much (never below 0); at progress 1, C = 0.
+
+    The reference is what the baseline earned on those episodes: its paired return from the same
+    initial state in simulation, its measured mean return elsewhere (a real system).
+    """
+
+    def __init__(self, c: float, guidance_steps: int, window: int, tolerance: float):
+        self.c0, self.guidance_steps, self.tolerance = c, guidance_steps, tolerance
+        self.returns: deque = deque(maxlen=window)
+        self.references: deque = deque(maxlen=window)
+        self.progress = 0.0
+
+    def c(self) -> float:
+        if self.guidance_steps == 0:
+            return self.c0
+        if self.progress >= 1.0:
+            return 0.0
+        return self.c0 * (GUIDANCE_C_END / self.c0) ** self.progress if self.c0 > 0 else 0.0
+
+    def end_episode(self, episode_return: float, reference_return: float, length: int) -> bool:
+        """Record one finished episode; returns whether it kept up (progress advanced)."""
+        self.returns.append(episode_return)
+        self.references.append(reference_return)
+        shortfall = np.mean(self.references) - np.mean(self.returns)
+        kept_up = bool(shortfall <= self.tolerance * abs(np.mean(self.references)))
+        step = length / self.guidance_steps if self.guidance_steps else 0.0
+        self.progress = min(1.0, self.progress + step) if kept_up else max(0.0, self.progress - step)
+        return kept_up
 
 
 def log_positive_rho(rho: float) -> float:
@@ -580,6 +617,8 @@ if __name__ == "__main__":
             args.guidance_steps = args.total_timesteps // 2
         if args.penalty_sigma2 <= 0 or args.gate_c < 0 or args.gate_k < 0 or args.guidance_steps < 0:
             raise ValueError("--penalty-sigma2 must be > 0; --gate-c, --gate-k and --guidance-steps must be >= 0")
+        if args.handover_episodes < 1 or args.handover_tolerance < 0:
+            raise ValueError("--handover-episodes must be >= 1 and --handover-tolerance >= 0")
     except ValueError as err:
         raise SystemExit(f"{args.exp_name}: error: {err}")
     if baseline is None and args.regret_estimator in ("paired", "unpaired"):
@@ -604,15 +643,17 @@ if __name__ == "__main__":
     gate_terms = 0
     previous_rl_transition = None  # (s, a^rl) of the last step if the agent acted then
     phase_regret = {"0_50": [0.0, 0.0], "50_100": [0.0, 0.0], "100": [0.0, 0.0]}  # Table I's RL-control phases
+    earned = EarnedGuidance(args.gate_c, args.guidance_steps, args.handover_episodes, args.handover_tolerance)
 
     # Baseline measurement on the evaluation seeds, so it compares with eval/episodic_return
     estimator, baseline_reward_per_step, baseline_seconds = "off", 0.0, 0.0
-    if baseline is not None and args.regret_estimator != "off":
+    if baseline is not None and (args.regret_estimator != "off" or args.guidance_schedule == "earned"):
         shadow_env = make_env(args.env_id, args.seed)  # runs the baseline beside the training env
         try:
             traces = [baseline_rollout(shadow_env, baseline, args.seed + EVAL_SEED_OFFSET + i)[1] for i in range(args.baseline_eval_episodes)]
         except ValueError as err:
-            raise SystemExit(f"{args.exp_name}: error: {err}")
+            earned_note = " and a --guidance-schedule other than earned" if args.guidance_schedule == "earned" else ""
+            raise SystemExit(f"{args.exp_name}: error: {err}{earned_note}")
         baseline_return = float(np.mean([t.sum() for t in traces]))
         baseline_reward_per_step = float(sum(t.sum() for t in traces) / sum(len(t) for t in traces))
         writer.add_scalar("charts/baseline_return", baseline_return, 0)
@@ -656,7 +697,10 @@ if __name__ == "__main__":
             else:  # Alg. 1, line 4: the gate (Alg. 3)
                 log_prob_baseline = squashed_log_prob(mean, log_std, baseline_action)
                 rho = divergence(mean, log_std, baseline_action)
-                c = guidance_c(args.gate_c, global_step, args.guidance_steps, args.guidance_schedule)
+                if args.guidance_schedule == "earned":
+                    c = earned.c()
+                else:
+                    c = guidance_c(args.gate_c, global_step, args.guidance_steps, args.guidance_schedule)
                 rl_acts = gate.decide(log_prob_baseline, rho, c)
                 gate_log_prob_sum += log_prob_baseline
                 gate_log_rho_sum += log_positive_rho(rho)
@@ -704,6 +748,10 @@ if __name__ == "__main__":
                 for name, (phase_episode, phase_per_step) in phase_regret.items():
                     writer.add_scalar(f"phases/baseline_regret_{name}", phase_episode, global_step)
                     writer.add_scalar(f"phases/baseline_regret_per_step_{name}", phase_per_step, global_step)
+            if args.guidance_schedule == "earned":
+                reference = float(baseline_rewards.sum()) if estimator == "paired" else baseline_return
+                earned.end_episode(episode_return, reference, len(episode_rewards))
+                writer.add_scalar("gate/guidance_progress", earned.progress, global_step)
             episode, episode_rewards = episode + 1, []
             previous_rl_transition = None
             gate.new_episode()
