@@ -108,6 +108,8 @@ class Args:
     """reward of the extra transition whose RL action made the baseline take control (paper, Sec. V.A)"""
     use_switch_penalty: bool = True
     """whether to store the switch-penalty transition"""
+    drop_guidance_transitions: bool = False
+    """when C reaches 0, remove the fabricated and switch-penalty transitions from the replay buffer (their next states followed the baseline's action)"""
     intervention_mode: bool = False
     """a baseline action, when given, always acts (a safety driver); None lets the agent act (paper, end of Sec. IV.B)"""
     rl_control_window: int = 1000
@@ -352,14 +354,26 @@ class ReplayBuffer:
         self.fields = (obs_dim, act_dim, 1, obs_dim, 1)
         self.storage = np.zeros((capacity, sum(self.fields)), dtype=np.float32)
         self.obs, self.actions, self.rewards, self.next_obs, self.terminations = np.split(self.storage, np.cumsum(self.fields)[:-1], axis=1)
+        self.guidance = np.zeros(capacity, dtype=bool)  # fabricated and switch-penalty rows
         self.rng = np.random.default_rng(seed)
 
-    def add(self, obs, action, reward: float, next_obs, terminated: bool) -> None:
+    def add(self, obs, action, reward: float, next_obs, terminated: bool, guidance: bool = False) -> None:
         i = self.pos
         self.obs[i], self.actions[i], self.rewards[i] = obs, action, reward
         self.next_obs[i], self.terminations[i] = next_obs, terminated
+        self.guidance[i] = guidance
         self.pos = (self.pos + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
+
+    def drop_guidance(self) -> int:
+        """Remove the fabricated and switch-penalty rows, keeping the others in order; returns how many went."""
+        keep = ~self.guidance[: self.size]
+        kept = int(keep.sum())
+        dropped = self.size - kept
+        self.storage[:kept] = self.storage[: self.size][keep]
+        self.guidance[: self.size] = False
+        self.size, self.pos = kept, kept % self.capacity
+        return dropped
 
     def sample(self, batch_size: int) -> tuple[torch.Tensor, ...]:
         """(obs, actions, rewards, next_obs, terminations) of a uniform batch, as column views of one tensor."""
@@ -638,7 +652,8 @@ if __name__ == "__main__":
     rb = ReplayBuffer(args.buffer_size, obs_dim, act_dim, args.seed)
     gate = Gate(args.gate_k)
     rl_control = deque(maxlen=args.rl_control_window)  # who acted in the last steps, for the RL-control fraction
-    control_switches = fabricated_transitions = 0
+    control_switches = fabricated_transitions = dropped_transitions = 0
+    guidance_over = False  # C has reached 0
     gate_log_prob_sum = gate_log_rho_sum = 0.0
     gate_terms = 0
     previous_rl_transition = None  # (s, a^rl) of the last step if the agent acted then
@@ -701,6 +716,9 @@ if __name__ == "__main__":
                     c = earned.c()
                 else:
                     c = guidance_c(args.gate_c, global_step, args.guidance_steps, args.guidance_schedule)
+                if c == 0.0 and not guidance_over and args.drop_guidance_transitions:
+                    dropped_transitions += rb.drop_guidance()
+                guidance_over = c == 0.0
                 rl_acts = gate.decide(log_prob_baseline, rho, c)
                 gate_log_prob_sum += log_prob_baseline
                 gate_log_rho_sum += log_positive_rho(rho)
@@ -718,11 +736,11 @@ if __name__ == "__main__":
         rb.add(obs, action, reward, next_obs, terminated)  # Alg. 1, line 9: the real transition
         if not rl_acts:
             # Alg. 1, lines 11-13: the fabricated transition, the agent's own action with the penalized reward
-            rb.add(obs, rl_action, penalized_reward(reward, baseline_action, rl_action, args.penalty_sigma2), next_obs, terminated)
+            rb.add(obs, rl_action, penalized_reward(reward, baseline_action, rl_action, args.penalty_sigma2), next_obs, terminated, True)
             fabricated_transitions += 1
             if previous_rl_transition is not None and args.use_switch_penalty:
                 # Sec. V.A: the RL action that made the baseline take control, again, with a fixed penalty
-                rb.add(*previous_rl_transition, args.switch_penalty, obs, False)
+                rb.add(*previous_rl_transition, args.switch_penalty, obs, False, True)
         previous_rl_transition = (obs, rl_action) if rl_acts else None
         obs = next_obs
 
@@ -779,6 +797,7 @@ if __name__ == "__main__":
             writer.add_scalar("charts/rl_control_fraction", sum(rl_control) / len(rl_control), global_step)
             writer.add_scalar("charts/control_switches", control_switches, global_step)
             writer.add_scalar("charts/fabricated_transitions", fabricated_transitions, global_step)
+            writer.add_scalar("charts/dropped_guidance_transitions", dropped_transitions, global_step)
             if gate_terms:
                 writer.add_scalar("gate/log_prob_baseline", gate_log_prob_sum / gate_terms, global_step)
                 writer.add_scalar("gate/log_rho", gate_log_rho_sum / gate_terms, global_step)

@@ -187,3 +187,28 @@ def test_guidance_schedules_hand_control_over_by_the_end():
         values = [jirl.guidance_c(10.0, t, 1000, schedule) for t in range(0, 1200, 50)]
         assert values[0] == 10.0 and values[-1] == 0.0 and jirl.guidance_c(10.0, 1000, 1000, schedule) == 0.0
         assert all(a > b for a, b in zip(values, values[1:]) if a > 0)
+
+
+def test_earned_guidance_advances_only_while_the_agent_keeps_up():
+    earned = jirl.EarnedGuidance(10.0, 1000, window=2, tolerance=0.1)
+    assert earned.c() == 10.0
+    # (return, baseline's return, length) -> expected progress, computed by hand
+    episodes = [
+        (-100.0, -100.0, 200, 0.2),  # level with the baseline: forward
+        (-105.0, -100.0, 200, 0.4),  # mean shortfall 2.5 <= 0.1 * 100: forward
+        (-150.0, -100.0, 200, 0.2),  # window (-105, -150) vs (-100, -100): 27.5 short, back
+        (-300.0, -100.0, 200, 0.0),  # back, and never below 0
+        (-50.0, -100.0, 200, 0.0),  # window (-300, -50): 75 short, still back
+        (-50.0, -100.0, 200, 0.2),  # the good episodes fill the window: forward again
+    ]
+    for episode_return, reference, length, progress in episodes:
+        earned.end_episode(episode_return, reference, length)
+        assert earned.progress == pytest.approx(progress)
+    # C follows the geometric schedule at the earned progress, and is 0 once all is earned
+    assert earned.c() == pytest.approx(jirl.guidance_c(10.0, 200, 1000, "geometric"))
+    for _ in range(4):
+        earned.end_episode(0.0, -100.0, 200)
+    assert earned.progress == 1.0 and earned.c() == 0.0
+    earned.end_episode(-1000.0, -100.0, 200)  # the agent falls behind: the baseline may take control again
+    assert earned.progress == pytest.approx(0.8) and earned.c() > 0
+    assert jirl.EarnedGuidance(10.0, 0, 5, 0.1).c() == 10.0  # no guidance: the paper's constant C

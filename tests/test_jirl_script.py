@@ -138,3 +138,35 @@ def test_script_copied_alone_runs_with_a_user_baseline(tmp_path):
     (run_dir,) = (tmp_path / "runs").iterdir()
     logged = scalars(run_dir)
     assert "charts/rl_control_fraction" in logged and "charts/baseline_regret_per_step" in logged
+
+
+@pytest.mark.parametrize("estimator", ["paired", "unpaired"])
+def test_earned_guidance_follows_the_episodes_against_the_baseline(tmp_path, monkeypatch, estimator):
+    monkeypatch.chdir(tmp_path)
+    argv = ["jirl_sac_continuous.py", "--guidance-schedule", "earned", "--guidance-steps", "400",
+            "--handover-episodes", "2", "--regret-estimator", estimator, "--baseline-eval-episodes", "2",
+            "--total-timesteps", "1000", "--learning-starts", "200", *TINY]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", argv)
+    g = runpy.run_path(str(ROOT / "jirl_sac_continuous.py"), run_name="__main__")
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    logged = scalars(run_dir)
+    returns = logged["charts/episodic_return"]
+    assert len(returns) == 5 and len(logged["gate/guidance_progress"]) == 5
+
+    # the reference, recomputed here: the baseline's episode from the same reset seed, or its mean return
+    from envs import get_baseline, make_env
+    from envs.baselines import rollout
+
+    env, baseline = make_env("Pendulum-v1"), get_baseline("Pendulum-v1")
+    if estimator == "paired":
+        references = [rollout(env, baseline, 1 + e).sum() for e in range(5)]
+    else:
+        references = [np.mean([rollout(env, baseline, 1 + jirl.EVAL_SEED_OFFSET + i).sum() for i in range(2)])] * 5
+    progress = 0.0
+    for e in range(5):
+        recent, reference = np.mean(returns[max(0, e - 1) : e + 1]), np.mean(references[max(0, e - 1) : e + 1])
+        progress = min(1.0, progress + 0.5) if recent >= reference - 0.1 * abs(reference) else max(0.0, progress - 0.5)
+        assert logged["gate/guidance_progress"][e] == pytest.approx(progress), e
+    assert g["earned"].progress == pytest.approx(progress)
+    moves = np.diff([0.0, *logged["gate/guidance_progress"]])
+    assert moves.max() > 0 and moves.min() < 0, "this run exercises both directions"
