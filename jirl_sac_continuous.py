@@ -108,8 +108,8 @@ class Args:
     """reward of the extra transition whose RL action made the baseline take control (paper, Sec. V.A)"""
     use_switch_penalty: bool = True
     """whether to store the switch-penalty transition"""
-    drop_guidance_transitions: bool = False
-    """when C reaches 0, remove the fabricated and switch-penalty transitions from the replay buffer (their next states followed the baseline's action)"""
+    guidance_fade_steps: int = 0
+    """once C reaches 0, fabricated and switch-penalty transitions are sampled less, linearly to never over this many steps (0: sampled as any other, the paper)"""
     intervention_mode: bool = False
     """a baseline action, when given, always acts (a safety driver); None lets the agent act (paper, end of Sec. IV.B)"""
     rl_control_window: int = 1000
@@ -365,19 +365,19 @@ class ReplayBuffer:
         self.pos = (self.pos + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
-    def drop_guidance(self) -> int:
-        """Remove the fabricated and switch-penalty rows, keeping the others in order; returns how many went."""
-        keep = ~self.guidance[: self.size]
-        kept = int(keep.sum())
-        dropped = self.size - kept
-        self.storage[:kept] = self.storage[: self.size][keep]
-        self.guidance[: self.size] = False
-        self.size, self.pos = kept, kept % self.capacity
-        return dropped
+    def sample(self, batch_size: int, guidance_weight: float = 1.0) -> tuple[torch.Tensor, ...]:
+        """(obs, actions, rewards, next_obs, terminations) of a batch, as column views of one tensor.
 
-    def sample(self, batch_size: int) -> tuple[torch.Tensor, ...]:
-        """(obs, actions, rewards, next_obs, terminations) of a uniform batch, as column views of one tensor."""
+        Rows are drawn uniformly, except that a fabricated or switch-penalty row is drawn with relative
+        weight `guidance_weight` in [0, 1] (rejected and redrawn otherwise; real rows always exist).
+        """
         idx = self.rng.integers(0, self.size, size=batch_size)
+        if guidance_weight < 1.0:
+            redraw = self.guidance[idx] & (self.rng.random(batch_size) >= guidance_weight)
+            while redraw.any():
+                n = int(redraw.sum())
+                idx[redraw] = self.rng.integers(0, self.size, size=n)
+                redraw[redraw] = self.guidance[idx[redraw]] & (self.rng.random(n) >= guidance_weight)
         return torch.from_numpy(self.storage[idx]).split(self.fields, dim=1)
 
 
@@ -631,8 +631,8 @@ if __name__ == "__main__":
             args.guidance_steps = args.total_timesteps // 2
         if args.penalty_sigma2 <= 0 or args.gate_c < 0 or args.gate_k < 0 or args.guidance_steps < 0:
             raise ValueError("--penalty-sigma2 must be > 0; --gate-c, --gate-k and --guidance-steps must be >= 0")
-        if args.handover_episodes < 1 or args.handover_tolerance < 0:
-            raise ValueError("--handover-episodes must be >= 1 and --handover-tolerance >= 0")
+        if args.handover_episodes < 1 or args.handover_tolerance < 0 or args.guidance_fade_steps < 0:
+            raise ValueError("--handover-episodes must be >= 1, --handover-tolerance and --guidance-fade-steps >= 0")
     except ValueError as err:
         raise SystemExit(f"{args.exp_name}: error: {err}")
     if baseline is None and args.regret_estimator in ("paired", "unpaired"):
@@ -652,8 +652,9 @@ if __name__ == "__main__":
     rb = ReplayBuffer(args.buffer_size, obs_dim, act_dim, args.seed)
     gate = Gate(args.gate_k)
     rl_control = deque(maxlen=args.rl_control_window)  # who acted in the last steps, for the RL-control fraction
-    control_switches = fabricated_transitions = dropped_transitions = 0
-    guidance_over = False  # C has reached 0
+    control_switches = fabricated_transitions = 0
+    guidance_over_since = None  # the step since which C has been 0
+    guidance_weight = 1.0  # relative weight of fabricated and switch-penalty transitions in a batch
     gate_log_prob_sum = gate_log_rho_sum = 0.0
     gate_terms = 0
     previous_rl_transition = None  # (s, a^rl) of the last step if the agent acted then
@@ -716,9 +717,10 @@ if __name__ == "__main__":
                     c = earned.c()
                 else:
                     c = guidance_c(args.gate_c, global_step, args.guidance_steps, args.guidance_schedule)
-                if c == 0.0 and not guidance_over and args.drop_guidance_transitions:
-                    dropped_transitions += rb.drop_guidance()
-                guidance_over = c == 0.0
+                if c > 0.0:
+                    guidance_over_since = None
+                elif guidance_over_since is None:
+                    guidance_over_since = global_step
                 rl_acts = gate.decide(log_prob_baseline, rho, c)
                 gate_log_prob_sum += log_prob_baseline
                 gate_log_rho_sum += log_positive_rho(rho)
@@ -783,7 +785,11 @@ if __name__ == "__main__":
 
         # ALGO LOGIC: training.
         if global_step >= args.learning_starts:
-            losses = sac.update(rb.sample(args.batch_size), global_step)
+            if args.guidance_fade_steps and guidance_over_since is not None:
+                guidance_weight = max(0.0, 1.0 - (global_step - guidance_over_since) / args.guidance_fade_steps)
+            else:
+                guidance_weight = 1.0
+            losses = sac.update(rb.sample(args.batch_size, guidance_weight), global_step)
 
             if global_step % args.log_every == 0:
                 for name, value in losses.items():
@@ -797,7 +803,7 @@ if __name__ == "__main__":
             writer.add_scalar("charts/rl_control_fraction", sum(rl_control) / len(rl_control), global_step)
             writer.add_scalar("charts/control_switches", control_switches, global_step)
             writer.add_scalar("charts/fabricated_transitions", fabricated_transitions, global_step)
-            writer.add_scalar("charts/dropped_guidance_transitions", dropped_transitions, global_step)
+            writer.add_scalar("charts/guidance_weight", guidance_weight, global_step)
             if gate_terms:
                 writer.add_scalar("gate/log_prob_baseline", gate_log_prob_sum / gate_terms, global_step)
                 writer.add_scalar("gate/log_rho", gate_log_rho_sum / gate_terms, global_step)

@@ -170,3 +170,30 @@ def test_earned_guidance_follows_the_episodes_against_the_baseline(tmp_path, mon
     assert g["earned"].progress == pytest.approx(progress)
     moves = np.diff([0.0, *logged["gate/guidance_progress"]])
     assert moves.max() > 0 and moves.min() < 0, "this run exercises both directions"
+
+
+def test_guidance_weight_sets_how_often_fabricated_rows_are_drawn():
+    rb = jirl.ReplayBuffer(10, 1, 1, seed=0)
+    kinds = [False, True, True, False, False, True, False]  # True: fabricated or switch penalty
+    for i, guidance in enumerate(kinds):
+        rb.add(np.array([i]), np.array([0.0]), float(i), np.array([i + 1]), False, guidance)
+    np.testing.assert_array_equal(rb.guidance[:7], kinds)
+    guidance_rows = {1, 2, 5}
+    for weight, expected in [(1.0, 3 / 7), (0.5, 1.5 / 5.5), (0.0, 0.0)]:
+        obs, _, rewards, next_obs, _ = (t.numpy()[:, 0] for t in rb.sample(40_000, weight))
+        share = np.isin(obs, list(guidance_rows)).mean()
+        assert share == pytest.approx(expected, abs=0.01), weight
+        np.testing.assert_array_equal(rewards, obs)  # rows stay whole
+        np.testing.assert_array_equal(next_obs, obs + 1)
+
+
+def test_guidance_transitions_fade_after_the_hand_over(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    argv = ["jirl_sac_continuous.py", "--guidance-steps", "300", "--guidance-fade-steps", "100", "--regret-estimator", "off",
+            "--total-timesteps", "500", "--learning-starts", "200", *TINY]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", argv)
+    g = runpy.run_path(str(ROOT / "jirl_sac_continuous.py"), run_name="__main__")
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    weights = scalars(run_dir)["charts/guidance_weight"]  # logged at steps 50, 100, ..., 450
+    np.testing.assert_allclose(weights, [1, 1, 1, 1, 1, 1, 0.5, 0, 0])  # C = 0 from step 300
+    assert g["guidance_over_since"] == 300 and g["fabricated_transitions"] > 0
