@@ -109,7 +109,7 @@ class Args:
     use_switch_penalty: bool = True
     """whether to store the switch-penalty transition"""
     guidance_fade_steps: int = 0
-    """once C reaches 0, fabricated and switch-penalty transitions are sampled less, linearly to never over this many steps (0: sampled as any other, the paper)"""
+    """from the step C first reaches 0, fabricated and switch-penalty transitions are sampled less, linearly to never over this many steps (0: always as any other, the paper)"""
     intervention_mode: bool = False
     """a baseline action, when given, always acts (a safety driver); None lets the agent act (paper, end of Sec. IV.B)"""
     rl_control_window: int = 1000
@@ -653,7 +653,7 @@ if __name__ == "__main__":
     gate = Gate(args.gate_k)
     rl_control = deque(maxlen=args.rl_control_window)  # who acted in the last steps, for the RL-control fraction
     control_switches = fabricated_transitions = 0
-    guidance_over_since = None  # the step since which C has been 0
+    guidance_over_since = None  # the step at which C first reached 0
     guidance_weight = 1.0  # relative weight of fabricated and switch-penalty transitions in a batch
     gate_log_prob_sum = gate_log_rho_sum = 0.0
     gate_terms = 0
@@ -717,10 +717,8 @@ if __name__ == "__main__":
                     c = earned.c()
                 else:
                     c = guidance_c(args.gate_c, global_step, args.guidance_steps, args.guidance_schedule)
-                if c > 0.0:
-                    guidance_over_since = None
-                elif guidance_over_since is None:
-                    guidance_over_since = global_step
+                if c == 0.0 and guidance_over_since is None:
+                    guidance_over_since = global_step  # the first hand-over: the guidance transitions start to fade
                 rl_acts = gate.decide(log_prob_baseline, rho, c)
                 gate_log_prob_sum += log_prob_baseline
                 gate_log_rho_sum += log_positive_rho(rho)
