@@ -4,7 +4,7 @@ Runs the seeds one after another (one torch thread each; start two of these side
 2-core machine, not one with two threads), each with --save-model so the final deterministic
 evaluation is logged, then prints one markdown row per seed and the median:
 final evaluation return, the baseline's return, accumulated baseline regret (both paired
-forms), wall time and SPS. Extra arguments after `--` go to the script unchanged.
+forms), wall time and SPS, then the median and the mean with its 95 % confidence interval. Extra arguments after `--` go to the script unchanged.
 
     python benchmarks/learning.py --script sac_continuous.py --env-id Pendulum-v1 \
         --seeds 1 2 3 --total-timesteps 20000 -- --learning-starts 1000
@@ -82,6 +82,16 @@ def main() -> None:
     for row in rows:
         print(f"| {row['seed']} | " + " | ".join(f"{row[k]:.1f}" for k in keys) + " |")
     print("| median | " + " | ".join(f"{statistics.median(r[k] for r in rows):.1f}" for k in keys) + " |")
+    if len(rows) > 1:
+        print("| mean ± 95 % CI | " + " | ".join(mean_ci([r[k] for r in rows]) for k in keys) + " |")
+
+
+def mean_ci(values: list[float]) -> str:
+    """Mean ± the half-width of its 95 % confidence interval (Student's t over the seeds)."""
+    from scipy import stats
+
+    half = stats.t.ppf(0.975, len(values) - 1) * statistics.stdev(values) / len(values) ** 0.5
+    return f"{statistics.mean(values):.1f} ± {half:.1f}"
 
 
 if __name__ == "__main__":
