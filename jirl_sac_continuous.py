@@ -96,8 +96,8 @@ class Args:
     """the gate's window K (Alg. 3): steps whose densities and divergences are multiplied"""
     guidance_steps: Optional[int] = None
     """C decays over this many steps and is 0 after, handing control to the agent (default: half of --total-timesteps; 0: the paper's constant C)"""
-    guidance_schedule: Literal["geometric", "linear", "earned"] = "geometric"
-    """geometric: log C falls linearly to log 1e-6, then C = 0; linear: C falls linearly to 0; earned: geometric, advancing only while the agent's recent episodes keep up with the baseline"""
+    guidance_schedule: Literal["earned", "geometric", "linear"] = "earned"
+    """earned: log C falls toward log 1e-6 (then C = 0) only while the agent's recent episodes keep up with the baseline's, and rises back when they fall behind; geometric: log C falls linearly with the steps; linear: C falls linearly to 0"""
     handover_episodes: int = 5
     """earned schedule: the episodes whose mean return is compared with the baseline's"""
     handover_tolerance: float = 0.1
@@ -663,12 +663,13 @@ if __name__ == "__main__":
 
     # Baseline measurement on the evaluation seeds, so it compares with eval/episodic_return
     estimator, baseline_reward_per_step, baseline_seconds = "off", 0.0, 0.0
-    if baseline is not None and (args.regret_estimator != "off" or args.guidance_schedule == "earned"):
+    earned_guidance = args.guidance_schedule == "earned" and not args.intervention_mode  # needs the baseline's returns
+    if baseline is not None and (args.regret_estimator != "off" or earned_guidance):
         shadow_env = make_env(args.env_id, args.seed)  # runs the baseline beside the training env
         try:
             traces = [baseline_rollout(shadow_env, baseline, args.seed + EVAL_SEED_OFFSET + i)[1] for i in range(args.baseline_eval_episodes)]
         except ValueError as err:
-            earned_note = " and a --guidance-schedule other than earned" if args.guidance_schedule == "earned" else ""
+            earned_note = " and --guidance-schedule geometric" if earned_guidance else ""
             raise SystemExit(f"{args.exp_name}: error: {err}{earned_note}")
         baseline_return = float(np.mean([t.sum() for t in traces]))
         baseline_reward_per_step = float(sum(t.sum() for t in traces) / sum(len(t) for t in traces))
@@ -766,7 +767,7 @@ if __name__ == "__main__":
                 for name, (phase_episode, phase_per_step) in phase_regret.items():
                     writer.add_scalar(f"phases/baseline_regret_{name}", phase_episode, global_step)
                     writer.add_scalar(f"phases/baseline_regret_per_step_{name}", phase_per_step, global_step)
-            if args.guidance_schedule == "earned":
+            if earned_guidance:
                 reference = float(baseline_rewards.sum()) if estimator == "paired" else baseline_return
                 earned.end_episode(episode_return, reference, len(episode_rewards))
                 writer.add_scalar("gate/guidance_progress", earned.progress, global_step)

@@ -84,9 +84,10 @@ class Baseline(Common):
 
 
 def car_jirl_defaults() -> jirl.Args:
-    # The paper's car settings (report Tables I-III): 64 units, batch 64, buffer 10k, K = 10, sigma^2 = 0.01.
+    # The paper's car settings (report Tables I-III): 64 units, batch 64, buffer 10k, K = 10, sigma^2 = 0.01;
+    # guidance by time (the car's laps are no episodes to compare with the baseline's)
     return jirl.Args(env_id="JetRacer", hidden_size=64, batch_size=64, buffer_size=10_000, learning_starts=300,
-                     gate_k=10, penalty_sigma2=0.01, guidance_steps=27_000)  # fmt: skip
+                     gate_k=10, penalty_sigma2=0.01, guidance_steps=27_000, guidance_schedule="geometric")  # fmt: skip
 
 
 @dataclass
@@ -356,6 +357,8 @@ def train(args: Train) -> dict:
     hp = args.jirl
     if hp.penalty_sigma2 <= 0:
         raise SystemExit("train: error: --jirl.penalty-sigma2 must be > 0")
+    if hp.guidance_schedule not in ("geometric", "linear"):
+        raise SystemExit("train: error: --jirl.guidance-schedule must be geometric or linear on the car (guidance by time)")
     torch.manual_seed(args.seed)
     torch.set_num_threads(hp.torch_threads)
     sac = jirl.SoftActorCritic(OBS_SIZE, 2, hp)

@@ -141,3 +141,11 @@ def test_sigterm_stops_a_drive_cleanly(tmp_path):
     assert process.returncode == 0, stderr
     steps = int(stdout.split("baseline: ")[1].split(" steps")[0])
     assert 0 < steps < 2000  # stopped early, and still reported
+
+
+def test_train_refuses_the_episode_based_schedule(tmp_path):
+    assert jetracer.car_jirl_defaults().guidance_schedule == "geometric"
+    args = ["train", "--total-steps", "10", "--jirl.guidance-schedule", "earned", "--checkpoint", str(tmp_path / "t.pt"), "--log-dir", str(tmp_path)]
+    out = subprocess.run([sys.executable, "-m", "deploy.jetracer", *args], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert out.returncode != 0 and "geometric or linear on the car" in out.stderr and "Traceback" not in out.stderr
+    assert not (tmp_path / "t.pt").exists()

@@ -68,7 +68,7 @@ def test_buffer_holds_real_fabricated_and_switch_penalty_transitions(tmp_path, m
 
 
 def test_end_to_end_logs_gate_and_regret(tmp_path):
-    args = ["--total-timesteps", "420", "--learning-starts", "150", "--guidance-steps", "300", "--save-model",
+    args = ["--total-timesteps", "420", "--learning-starts", "150", "--guidance-steps", "300", "--guidance-schedule", "geometric", "--save-model",
             "--eval-episodes", "1", "--baseline-eval-episodes", "2", *TINY]  # fmt: skip
     out = run_script(ROOT / "jirl_sac_continuous.py", args, tmp_path)
     assert out.returncode == 0, out.stderr
@@ -95,7 +95,7 @@ def test_a_baseline_that_never_intervenes_leaves_the_agent_in_control(tmp_path, 
     (tmp_path / "interveners.py").write_text(INTERVENER)
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.chdir(tmp_path)
-    argv = ["jirl_sac_continuous.py", "--baseline", "interveners:never", "--regret-estimator", "off",
+    argv = ["jirl_sac_continuous.py", "--baseline", "interveners:never", "--regret-estimator", "off", "--guidance-schedule", "geometric",
             "--total-timesteps", "120", "--learning-starts", "60", *TINY]  # fmt: skip
     monkeypatch.setattr(sys, "argv", argv)
     g = runpy.run_path(str(ROOT / "jirl_sac_continuous.py"), run_name="__main__")
@@ -106,7 +106,7 @@ def test_measuring_an_intervening_baseline_is_a_clear_error(tmp_path):
     (tmp_path / "interveners.py").write_text(INTERVENER)
     env = dict(os.environ, PYTHONPATH=f"{tmp_path}{os.pathsep}{ROOT}")
     out = run_script(ROOT / "jirl_sac_continuous.py", ["--baseline", "interveners:never", "--total-timesteps", "10"], tmp_path, env)
-    assert out.returncode != 0 and "use --regret-estimator off" in out.stderr and "Traceback" not in out.stderr
+    assert out.returncode != 0 and "use --regret-estimator off and --guidance-schedule geometric" in out.stderr and "Traceback" not in out.stderr
 
 
 @pytest.mark.parametrize(
@@ -189,7 +189,7 @@ def test_guidance_weight_sets_how_often_fabricated_rows_are_drawn():
 
 def test_guidance_transitions_fade_after_the_hand_over(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    argv = ["jirl_sac_continuous.py", "--guidance-steps", "300", "--guidance-fade-steps", "100", "--regret-estimator", "off",
+    argv = ["jirl_sac_continuous.py", "--guidance-steps", "300", "--guidance-schedule", "geometric", "--guidance-fade-steps", "100", "--regret-estimator", "off",
             "--total-timesteps", "500", "--learning-starts", "200", *TINY]  # fmt: skip
     monkeypatch.setattr(sys, "argv", argv)
     g = runpy.run_path(str(ROOT / "jirl_sac_continuous.py"), run_name="__main__")
