@@ -232,8 +232,8 @@ class SoftQNetwork(nn.Module):
     def forward(self, x: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         """Q1(s, a), Q2(s, a) stacked: (num_critics, batch, 1)."""
         x = torch.cat([x, a], 1)
-        x = F.relu(self.fc1(x))
-        x = F.relu(self.fc2(x))
+        x = F.relu(self.fc1(x), inplace=True)  # in place: the products before need their inputs, not outputs
+        x = F.relu(self.fc2(x), inplace=True)
         return self.fc3(x)
 
 
@@ -254,8 +254,8 @@ class Actor(nn.Module):
         self.fc_logstd = nn.Linear(hidden_size, act_dim)
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        x = F.relu(self.fc1(x))
-        x = F.relu(self.fc2(x))
+        x = F.relu(self.fc1(x), inplace=True)  # in place: the products before need their inputs, not outputs
+        x = F.relu(self.fc2(x), inplace=True)
         mean = self.fc_mean(x)
         log_std = torch.tanh(self.fc_logstd(x))
         log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (log_std + 1)  # From SpinUp / Denis Yarats

@@ -1,8 +1,8 @@
 """Does a hand-fused activation pay? ms per training step of sac_continuous.py against two variants.
 
-`inplace`: every hidden ReLU applied in place (no new tensor for the activation); `fused`: in place too,
-and each critic hidden layer (batched product + ReLU) one autograd Function with a hand-written backward
-(one graph node instead of two). The variants are written from the current sac_continuous.py into
+sac_continuous.py applies its hidden ReLUs in place (kept because of this measurement). `copy`: the ReLUs
+return a new tensor instead; `fused`: each critic hidden layer (batched product + in-place ReLU) is one
+autograd Function with a hand-written backward (one graph node instead of two). The variants are written from the current sac_continuous.py into
 --workdir; each measurement is a fresh process on one torch thread (benchmarks/update_speed.py's
 step), the order rotating every repetition.
 
@@ -40,8 +40,8 @@ class EnsembleLinearReLU(torch.autograd.Function):
         return grad_x, grad_w, grad_b
 '''
 CRITIC_BODY = """        x = torch.cat([x, a], 1)
-        x = F.relu(self.fc1(x))
-        x = F.relu(self.fc2(x))
+        x = F.relu(self.fc1(x), inplace=True)  # in place: the products before need their inputs, not outputs
+        x = F.relu(self.fc2(x), inplace=True)
         return self.fc3(x)"""
 FUSED_CRITIC_BODY = """        x = torch.cat([x, a], 1).expand(self.fc1.weight.shape[0], -1, -1)
         x = EnsembleLinearReLU.apply(x, self.fc1.weight, self.fc1.bias)
@@ -52,12 +52,10 @@ FUSED_CRITIC_BODY = """        x = torch.cat([x, a], 1).expand(self.fc1.weight.s
 def write_variants(workdir: Path) -> dict[str, Path]:
     source = (ROOT / "sac_continuous.py").read_text()
     assert CRITIC_BODY in source, "sac_continuous.py's critic changed; update this benchmark"
-    inplace = source.replace("F.relu(self.fc1(x))", "F.relu(self.fc1(x), inplace=True)")
-    inplace = inplace.replace("F.relu(self.fc2(x))", "F.relu(self.fc2(x), inplace=True)")
+    copy = source.replace(", inplace=True)", ")")
     fused = source.replace(CRITIC_BODY, FUSED_CRITIC_BODY).replace("\n\nclass SoftQNetwork(", FUSED_LAYER + "\n\nclass SoftQNetwork(")
-    fused = fused.replace("F.relu(self.fc1(x))", "F.relu(self.fc1(x), inplace=True)").replace("F.relu(self.fc2(x))", "F.relu(self.fc2(x), inplace=True)")
-    paths = {"now": ROOT / "sac_continuous.py", "inplace": workdir / "sac_inplace.py", "fused": workdir / "sac_fused.py"}
-    paths["inplace"].write_text(inplace)
+    paths = {"now": ROOT / "sac_continuous.py", "copy": workdir / "sac_copy.py", "fused": workdir / "sac_fused.py"}
+    paths["copy"].write_text(copy)
     paths["fused"].write_text(fused)
     return paths
 
@@ -72,7 +70,7 @@ def main() -> None:
     args.workdir.mkdir(parents=True, exist_ok=True)
     paths = write_variants(args.workdir)
     names = list(paths)
-    print("| width | now ms | inplace ms | fused ms | now/inplace | now/fused |")
+    print("| width | now ms | copy ms | fused ms | copy/now | fused/now |")
     print("|---|---|---|---|---|---|")
     for width in args.widths:
         ms: dict[str, list[float]] = {name: [] for name in names}
@@ -83,11 +81,11 @@ def main() -> None:
                 ms[name].append(float(out.strip().splitlines()[-1]) * 1000.0)
 
         def ratio(other: str) -> str:
-            ratios = [n / o for n, o in zip(ms["now"], ms[other])]
+            ratios = [o / n for n, o in zip(ms["now"], ms[other])]
             return f"{statistics.median(ratios):.2f} ({min(ratios):.2f}-{max(ratios):.2f})"
 
         medians = " | ".join(f"{statistics.median(ms[n]):.2f}" for n in names)
-        print(f"| {width} | {medians} | {ratio('inplace')} | {ratio('fused')} |", flush=True)
+        print(f"| {width} | {medians} | {ratio('copy')} | {ratio('fused')} |", flush=True)
 
 
 if __name__ == "__main__":
