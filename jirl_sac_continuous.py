@@ -95,7 +95,7 @@ class Args:
     gate_k: int = 5
     """the gate's window K (Alg. 3): steps whose densities and divergences are multiplied"""
     guidance_steps: Optional[int] = None
-    """C decays over this many steps and is 0 after, handing control to the agent (default: half of --total-timesteps; 0: the paper's constant C)"""
+    """C decays over this many steps (earned ones with the earned schedule) and is 0 after, handing control to the agent (default: half of --total-timesteps; 0: the paper's constant C)"""
     guidance_schedule: Literal["earned", "geometric", "linear"] = "earned"
     """earned: log C falls toward log 1e-6 (then C = 0) only while the agent's recent episodes keep up with the baseline's, and rises back when they fall behind; geometric: log C falls linearly with the steps; linear: C falls linearly to 0"""
     handover_episodes: int = 5
@@ -250,11 +250,16 @@ def guidance_c(c: float, step: int, guidance_steps: int, schedule: str) -> float
     if guidance_steps == 0:
         return c
     progress = step / guidance_steps
-    if progress >= 1.0:
-        return 0.0
     if schedule == "linear":
-        return c * (1.0 - progress)
-    return c * (GUIDANCE_C_END / c) ** progress if c > 0 else 0.0
+        return c * (1.0 - progress) if progress < 1.0 else 0.0
+    return geometric_c(c, progress)
+
+
+def geometric_c(c: float, progress: float) -> float:
+    """log C moved linearly from log c (progress 0) to log 1e-6 (progress -> 1), and C = 0 at progress 1."""
+    if progress >= 1.0 or c <= 0:
+        return 0.0
+    return c * (GUIDANCE_C_END / c) ** progress
 
 
 class EarnedGuidance:
@@ -273,11 +278,7 @@ class EarnedGuidance:
         self.progress = 0.0
 
     def c(self) -> float:
-        if self.guidance_steps == 0:
-            return self.c0
-        if self.progress >= 1.0:
-            return 0.0
-        return self.c0 * (GUIDANCE_C_END / self.c0) ** self.progress if self.c0 > 0 else 0.0
+        return geometric_c(self.c0, self.progress) if self.guidance_steps else self.c0
 
     def end_episode(self, episode_return: float, reference_return: float, length: int) -> bool:
         """Record one finished episode; returns whether it kept up (progress advanced)."""
