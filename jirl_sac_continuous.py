@@ -787,8 +787,6 @@ if __name__ == "__main__":
         if global_step >= args.learning_starts:
             if args.guidance_fade_steps and guidance_over_since is not None:
                 guidance_weight = max(0.0, 1.0 - (global_step - guidance_over_since) / args.guidance_fade_steps)
-            else:
-                guidance_weight = 1.0
             losses = sac.update(rb.sample(args.batch_size, guidance_weight), global_step)
 
             if global_step % args.log_every == 0:
