@@ -109,7 +109,7 @@ class Args:
     use_switch_penalty: bool = True
     """whether to store the switch-penalty transition"""
     guidance_fade_steps: int = 0
-    """from the step C first reaches 0, fabricated and switch-penalty transitions are sampled less, linearly to never over this many steps (0: always as any other, the paper)"""
+    """fabricated and switch-penalty transitions are sampled less for each step with C = 0, linearly to never after this many, and more again for each step with C > 0 (the earned schedule's way back; 0: always as any other, the paper)"""
     intervention_mode: bool = False
     """a baseline action, when given, always acts (a safety driver); None lets the agent act (paper, end of Sec. IV.B)"""
     rl_control_window: int = 1000
@@ -289,6 +289,25 @@ class EarnedGuidance:
         step = length / self.guidance_steps if self.guidance_steps else 0.0
         self.progress = min(1.0, self.progress + step) if kept_up else max(0.0, self.progress - step)
         return kept_up
+
+
+class GuidanceFade:
+    """How often fabricated and switch-penalty rows are drawn once the agent has control: their weight
+    falls linearly from 1 to 0 over `steps` gate steps with C = 0 and, from wherever it is, climbs
+    back one step for each gate step with C > 0, so that where the earned schedule returns control to
+    the baseline the agent learns from it again. steps = 0: weight 1 always (the paper).
+    """
+
+    def __init__(self, steps: int):
+        self.steps, self.faded = steps, 0
+
+    def weight(self, c: float) -> float:
+        """The weight for this step, whose gate uses C = c (the first step with C = 0 still has weight 1)."""
+        if not self.steps:
+            return 1.0
+        weight = 1.0 - self.faded / self.steps
+        self.faded = min(self.steps, self.faded + 1) if c == 0.0 else max(0, self.faded - 1)
+        return weight
 
 
 def log_positive_rho(rho: float) -> float:
@@ -654,7 +673,7 @@ if __name__ == "__main__":
     gate = Gate(args.gate_k)
     rl_control = deque(maxlen=args.rl_control_window)  # who acted in the last steps, for the RL-control fraction
     control_switches = fabricated_transitions = 0
-    guidance_over_since = None  # the step at which C first reached 0
+    fade = GuidanceFade(args.guidance_fade_steps)
     guidance_weight = 1.0  # relative weight of fabricated and switch-penalty transitions in a batch
     gate_log_prob_sum = gate_log_rho_sum = 0.0
     gate_terms = 0
@@ -719,8 +738,7 @@ if __name__ == "__main__":
                     c = earned.c()
                 else:
                     c = guidance_c(args.gate_c, global_step, args.guidance_steps, args.guidance_schedule)
-                if c == 0.0 and guidance_over_since is None:
-                    guidance_over_since = global_step  # the first hand-over: the guidance transitions start to fade
+                guidance_weight = fade.weight(c)
                 rl_acts = gate.decide(log_prob_baseline, rho, c)
                 gate_log_prob_sum += log_prob_baseline
                 gate_log_rho_sum += log_positive_rho(rho)
@@ -785,8 +803,6 @@ if __name__ == "__main__":
 
         # ALGO LOGIC: training.
         if global_step >= args.learning_starts:
-            if args.guidance_fade_steps and guidance_over_since is not None:
-                guidance_weight = max(0.0, 1.0 - (global_step - guidance_over_since) / args.guidance_fade_steps)
             losses = sac.update(rb.sample(args.batch_size, guidance_weight), global_step)
 
             if global_step % args.log_every == 0:

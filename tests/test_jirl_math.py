@@ -212,3 +212,17 @@ def test_earned_guidance_advances_only_while_the_agent_keeps_up():
     earned.end_episode(-1000.0, -100.0, 200)  # the agent falls behind: the baseline may take control again
     assert earned.progress == pytest.approx(0.8) and earned.c() > 0
     assert jirl.EarnedGuidance(10.0, 0, 5, 0.1).c() == 10.0  # no guidance: the paper's constant C
+
+
+def test_guidance_fade_follows_c_forward_and_back():
+    fade = jirl.GuidanceFade(4)
+    cs = [1.0, 0.0, 0.0, 0.0, 1e-9, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 3.0, 3.0]
+    # weight = 1 - n / 4, n counting up (to 4 at most) on each earlier step with C = 0 and down on one with C > 0
+    expected = [1.0, 1.0, 0.75, 0.5, 0.25, 0.5, 0.25, 0.0, 0.0, 0.0, 0.0, 0.0, 0.25]
+    assert [fade.weight(c) for c in cs] == pytest.approx(expected)
+    # the count stops at the fade's end, so the way back starts with the first step with C > 0
+    assert fade.faded == 4 - 2
+    assert [fade.weight(3.0) for _ in range(3)] == pytest.approx([0.5, 0.75, 1.0])
+    assert fade.faded == 0
+    off = jirl.GuidanceFade(0)  # no fade: the paper
+    assert [off.weight(c) for c in (0.0, 0.0, 5.0)] == [1.0, 1.0, 1.0]

@@ -196,4 +196,4 @@ def test_guidance_transitions_fade_after_the_hand_over(tmp_path, monkeypatch):
     (run_dir,) = (tmp_path / "runs").iterdir()
     weights = scalars(run_dir)["charts/guidance_weight"]  # logged at steps 50, 100, ..., 450
     np.testing.assert_allclose(weights, [1, 1, 1, 1, 1, 1, 0.5, 0, 0])  # C = 0 from step 300
-    assert g["guidance_over_since"] == 300 and g["fabricated_transitions"] > 0
+    assert g["fade"].faded == 100 and g["fabricated_transitions"] > 0  # C = 0 from step 300: the fade is complete
