@@ -13,6 +13,7 @@ forms), wall time and SPS, then the median and the mean with its 95 % confidence
 from __future__ import annotations
 
 import argparse
+import math
 import statistics
 import subprocess
 import sys
@@ -87,9 +88,13 @@ def main() -> None:
 
 
 def mean_ci(values: list[float]) -> str:
-    """Mean ± the half-width of its 95 % confidence interval (Student's t over the seeds)."""
+    """Mean ± the half-width of its 95 % confidence interval (Student's t over the seeds); NaNs (a
+    quantity the script does not log, such as SAC's RL-control fraction) are left out."""
     from scipy import stats
 
+    values = [v for v in values if not math.isnan(v)]
+    if len(values) < 2:
+        return f"{values[0]:.1f}" if values else "–"
     half = stats.t.ppf(0.975, len(values) - 1) * statistics.stdev(values) / len(values) ** 0.5
     return f"{statistics.mean(values):.1f} ± {half:.1f}"
 

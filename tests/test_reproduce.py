@@ -89,3 +89,14 @@ def test_submitit_local_executor(tmp_path):
 def test_unknown_method_is_an_error(tmp_path):
     with pytest.raises(SystemExit, match="unknown methods or envs"):
         reproduce.main(reproduce.Args(methods=("dqn",), workdir=str(tmp_path)))
+
+
+def test_learning_summary_skips_what_a_script_does_not_log():
+    import learning
+
+    values = [-170.0, -180.0, -200.0]
+    half = stats.t.ppf(0.975, 2) * np.std(values, ddof=1) / math.sqrt(3)
+    assert learning.mean_ci(values) == f"{np.mean(values):.1f} ± {half:.1f}"
+    assert learning.mean_ci([*values, math.nan]) == learning.mean_ci(values)  # one seed without the tag
+    assert learning.mean_ci([math.nan] * 3) == "–"  # SAC's RL-control fraction
+    assert learning.mean_ci([5.0, math.nan]) == "5.0"
