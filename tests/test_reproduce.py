@@ -100,3 +100,32 @@ def test_learning_summary_skips_what_a_script_does_not_log():
     assert learning.mean_ci([*values, math.nan]) == learning.mean_ci(values)  # one seed without the tag
     assert learning.mean_ci([math.nan] * 3) == "–"  # SAC's RL-control fraction
     assert learning.mean_ci([5.0, math.nan]) == "5.0"
+
+
+def test_every_preset_command_parses_and_the_paper_preset_bounds_sac_buffers(monkeypatch):
+    """Each preset's command is accepted by its script's own Args; the paper preset gives JIRL and SAC
+    the authors' replay buffers (Pendulum 50k, Lunar Lander 100k) and leaves the rest at 1e6."""
+    import importlib.util
+
+    import tyro
+
+    modules = {}
+    for method, script in reproduce.SCRIPTS.items():
+        spec = importlib.util.spec_from_file_location(f"_preset_{method}", ROOT / script)
+        modules[method] = importlib.util.module_from_spec(spec)
+        monkeypatch.setitem(sys.modules, spec.name, modules[method])  # dataclasses look their module up
+        spec.loader.exec_module(modules[method])
+    parsed = {}
+    for name, preset in reproduce.PRESETS.items():
+        for env in preset:
+            for method in reproduce.SCRIPTS:
+                cmd = reproduce.command(preset, env, method, seed=3)
+                assert cmd[1] == str(ROOT / reproduce.SCRIPTS[method])
+                parsed[name, env, method] = tyro.cli(modules[method].Args, args=cmd[2:])
+    paper = {env: {m: parsed["paper", env, m] for m in ("jirl", "sac")} for env in reproduce.PRESETS["paper"]}
+    assert paper["Pendulum-v1"]["jirl"].buffer_size == paper["Pendulum-v1"]["sac"].buffer_size == 50_000
+    assert paper["LunarLanderContinuous-v3"]["jirl"].buffer_size == paper["LunarLanderContinuous-v3"]["sac"].buffer_size == 100_000
+    assert paper["Walker2DBulletEnv-v0"]["sac"].buffer_size == 1_000_000
+    assert paper["Pendulum-v1"]["jirl"].gate_k == 1 and paper["Pendulum-v1"]["jirl"].penalty_sigma2 == 0.01
+    assert parsed["local", "Pendulum-v1", "jirl"].buffer_size == parsed["local", "Pendulum-v1", "sac"].buffer_size == 1_000_000
+    assert parsed["paper", "Pendulum-v1", "sac"].total_timesteps == 280_000 and parsed["paper", "Pendulum-v1", "sac"].seed == 3
