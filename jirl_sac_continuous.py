@@ -110,6 +110,8 @@ class Args:
     """whether to store the switch-penalty transition"""
     guidance_fade_steps: int = 0
     """fabricated and switch-penalty transitions are sampled less for each step with C = 0, linearly to never after this many, and more again for each step with C > 0 (the earned schedule's way back; 0: always as any other, the paper)"""
+    deterministic_after_guidance: bool = False
+    """while C = 0 the agent applies its deterministic action tanh(mean) instead of a sample (the authors' code did; fewer bad episodes, less exploration)"""
     intervention_mode: bool = False
     """a baseline action, when given, always acts (a safety driver); None lets the agent act (paper, end of Sec. IV.B)"""
     rl_control_window: int = 1000
@@ -740,6 +742,8 @@ if __name__ == "__main__":
                     c = guidance_c(args.gate_c, global_step, args.guidance_steps, args.guidance_schedule)
                 guidance_weight = fade.weight(c)
                 rl_acts = gate.decide(log_prob_baseline, rho, c)
+                if rl_acts and c == 0.0 and args.deterministic_after_guidance:
+                    rl_action = np.tanh(mean).astype(np.float32)
                 gate_log_prob_sum += log_prob_baseline
                 gate_log_rho_sum += log_positive_rho(rho)
                 gate_terms += 1

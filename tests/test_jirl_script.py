@@ -7,6 +7,7 @@ import sys
 
 import numpy as np
 import pytest
+import torch
 
 from conftest import ROOT, load_script
 from test_sac_script import TINY, run_script, scalars
@@ -15,6 +16,7 @@ jirl = load_script("jirl_sac_continuous")
 
 INTERVENER = '''
 import numpy as np
+import torch
 from envs.pendulum import pendulum_swing_up
 
 def when_spinning_right(obs):
@@ -197,3 +199,21 @@ def test_guidance_transitions_fade_after_the_hand_over(tmp_path, monkeypatch):
     weights = scalars(run_dir)["charts/guidance_weight"]  # logged at steps 50, 100, ..., 450
     np.testing.assert_allclose(weights, [1, 1, 1, 1, 1, 1, 0.5, 0, 0])  # C = 0 from step 300
     assert g["fade"].faded == 100 and g["fabricated_transitions"] > 0  # C = 0 from step 300: the fade is complete
+
+
+@pytest.mark.parametrize("deterministic", [True, False])
+def test_deterministic_after_guidance_applies_the_mean_action_once_c_is_0(tmp_path, monkeypatch, deterministic):
+    monkeypatch.chdir(tmp_path)
+    flag = ["--deterministic-after-guidance"] if deterministic else []
+    # no updates (learning starts at the end), so the final actor is the one that acted throughout
+    argv = ["jirl_sac_continuous.py", "--guidance-steps", "150", "--guidance-schedule", "geometric", "--regret-estimator", "off",
+            "--total-timesteps", "250", "--learning-starts", "250", *flag, *TINY]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", argv)
+    g = runpy.run_path(str(ROOT / "jirl_sac_continuous.py"), run_name="__main__")
+    rb = g["rb"]
+    with torch.no_grad():
+        mean, _ = g["actor"](torch.from_numpy(rb.obs[: rb.size]).float())
+    is_mean_action = np.all(np.abs(rb.actions[: rb.size] - np.tanh(mean.numpy())) < 1e-5, axis=1)
+    alone = is_mean_action[-100:]  # C = 0 from step 150: one row per step, the agent's
+    assert alone.all() if deterministic else not alone.any()
+    assert g["fabricated_transitions"] > 0 and not is_mean_action[:-100].any()  # samples and baseline actions before
