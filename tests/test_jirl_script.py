@@ -16,7 +16,6 @@ jirl = load_script("jirl_sac_continuous")
 
 INTERVENER = '''
 import numpy as np
-import torch
 from envs.pendulum import pendulum_swing_up
 
 def when_spinning_right(obs):
