@@ -1,0 +1,73 @@
+"""benchmarks/regret_floor.py: the paired regret of a fixed policy, against numbers computed here."""
+
+import sys
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from conftest import ROOT
+
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import regret_floor  # noqa: E402
+
+from envs import get_baseline  # noqa: E402
+
+
+def rewards_of(policy, seed):
+    env = gym.make("Pendulum-v1")
+    obs, _ = env.reset(seed=seed)
+    rewards, done = [], False
+    while not done:
+        obs, reward, terminated, truncated, _ = env.step(policy(obs))
+        rewards.append(reward)
+        done = terminated or truncated
+    return np.array(rewards)
+
+
+def test_the_baseline_against_itself_pays_nothing():
+    baseline = get_baseline("Pendulum-v1")
+    floor = regret_floor.measure("Pendulum-v1", baseline, baseline, episodes=2, seed_offset=7)
+    assert floor.regret_per_episode == 0.0 and floor.regret_per_step_per_episode == 0.0
+    assert floor.behind_share == 0.0
+    assert floor.policy_return == pytest.approx(floor.baseline_return)
+    assert floor.mean_length == 200
+
+
+def test_a_weaker_policy_against_an_independent_computation():
+    baseline = get_baseline("Pendulum-v1")
+
+    def no_torque(obs):
+        return np.zeros(1, dtype=np.float32)
+
+    floor = regret_floor.measure("Pendulum-v1", no_torque, baseline, episodes=3, seed_offset=11)
+    episode_form, per_step, behind = [], [], []
+    for seed in (11, 12, 13):
+        r, r_b = rewards_of(no_torque, seed), rewards_of(baseline, seed)
+        episode_form.append(max(0.0, r_b.sum() - r.sum()))
+        per_step.append(np.clip(r_b - r, 0.0, None).sum())
+        behind.append(r.sum() < r_b.sum())
+    assert floor.regret_per_episode == pytest.approx(np.mean(episode_form), rel=1e-6)
+    assert floor.regret_per_step_per_episode == pytest.approx(np.mean(per_step), rel=1e-6)
+    assert floor.behind_share == pytest.approx(np.mean(behind))
+    assert floor.regret_per_episode > 0.0
+
+
+def test_the_floor_over_a_budget():
+    floor = regret_floor.Floor(-150.0, -230.0, 2.0, 10.0, 0.4, 200.0)
+    assert floor.over(280_000) == pytest.approx((2_800.0, 14_000.0))
+
+
+def test_a_corrupt_checkpoint_is_reported_and_the_rest_still_run(tmp_path, monkeypatch, capsys):
+    bad = tmp_path / "bad.cleanrl_model"
+    bad.write_bytes(b"not a checkpoint")
+    monkeypatch.setattr(sys, "argv", ["regret_floor.py", "--episodes", "1", str(bad)])
+    regret_floor.main()
+    out = capsys.readouterr().out
+    assert "unreadable" in out and str(bad) in out
+
+
+def test_episodes_must_be_positive(monkeypatch):
+    monkeypatch.setattr(sys, "argv", ["regret_floor.py", "--episodes", "0", "x.cleanrl_model"])
+    with pytest.raises(SystemExit):
+        regret_floor.main()
