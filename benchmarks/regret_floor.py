@@ -26,9 +26,9 @@ import torch
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from envs import get_baseline, make_env  # noqa: E402
+from envs import get_baseline, make_env, rollout  # noqa: E402
 
-from side_by_side import load_module  # noqa: E402
+from side_by_side import checkpoint_policy, load_module  # noqa: E402
 
 Policy = Callable[[np.ndarray], np.ndarray]
 
@@ -48,26 +48,14 @@ class Floor:
         return episodes * self.regret_per_episode, episodes * self.regret_per_step_per_episode
 
 
-def episode_rewards(env, policy: Policy, seed: int) -> np.ndarray:
-    if hasattr(policy, "reset"):  # a baseline with memory (the lane follower) starts each episode afresh
-        policy.reset()
-    obs, _ = env.reset(seed=seed)
-    rewards, done = [], False
-    while not done:
-        obs, reward, terminated, truncated, _ = env.step(policy(obs))
-        rewards.append(float(reward))
-        done = terminated or truncated
-    return np.asarray(rewards)
-
-
 def measure(env_id: str, policy: Policy, baseline: Policy, episodes: int, seed_offset: int) -> Floor:
     """The policy against the baseline, paired by reset seed, scored as the training scripts score it."""
     sac = load_module(str(ROOT / "sac_continuous.py"))
     env = make_env(env_id, seed_offset)
     forms, returns, baseline_returns, lengths = [], [], [], []
     for i in range(episodes):
-        rewards = episode_rewards(env, policy, seed_offset + i)
-        baseline_rewards = episode_rewards(env, baseline, seed_offset + i)
+        rewards = rollout(env, policy, seed_offset + i)
+        baseline_rewards = rollout(env, baseline, seed_offset + i)
         forms.append(sac.paired_regret(rewards, baseline_rewards))
         returns.append(rewards.sum())
         baseline_returns.append(baseline_rewards.sum())
@@ -82,23 +70,6 @@ def measure(env_id: str, policy: Policy, baseline: Policy, episodes: int, seed_o
         behind_share=float(np.mean(np.asarray(returns) < np.asarray(baseline_returns))),
         mean_length=float(np.mean(lengths)),
     )
-
-
-def checkpoint_policy(path: Path) -> tuple[str, Policy]:
-    """The env id a checkpoint was trained on and its deterministic policy in env units."""
-    sac = load_module(str(ROOT / "sac_continuous.py"))
-    checkpoint = sac.load_checkpoint(str(path))
-    env = make_env(checkpoint["env_id"])
-    actor = sac.actor_from_checkpoint(checkpoint, env)
-    low, high = env.action_space.low, env.action_space.high
-    env.close()
-
-    def policy(obs: np.ndarray) -> np.ndarray:
-        with torch.inference_mode():
-            _, _, action = actor.get_action(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0))
-        return sac.to_env_units(action[0].numpy(), low, high)
-
-    return checkpoint["env_id"], policy
 
 
 def main() -> None:

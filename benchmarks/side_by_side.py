@@ -1,5 +1,5 @@
 """Helpers of the benchmarks: timing implementations side by side (rotating order, fresh processes,
-ratios per repetition), an earlier revision of a script, a script loaded as a module."""
+ratios per repetition), an earlier revision of a script, a script loaded as a module, a saved policy."""
 
 from __future__ import annotations
 
@@ -11,6 +11,10 @@ import subprocess
 import time
 from pathlib import Path
 from typing import Callable, Sequence
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def timed(cmd: list[str], workdir: Path) -> tuple[float, float]:
@@ -54,8 +58,7 @@ def compare(command: Callable[[str, int], list[str]], steps: int, repeats: int, 
 
 def script_at(revision: str, dest: Path, script: str = "sac_continuous.py") -> Path:
     """Write `script` as it was at git `revision` to dest/sac_before.py (run alone, without envs/)."""
-    root = Path(__file__).resolve().parent.parent
-    source = subprocess.run(["git", "show", f"{revision}:{script}"], cwd=root, check=True, capture_output=True, text=True).stdout
+    source = subprocess.run(["git", "show", f"{revision}:{script}"], cwd=ROOT, check=True, capture_output=True, text=True).stdout
     path = dest / "sac_before.py"
     path.write_text(source)
     return path
@@ -68,3 +71,26 @@ def load_module(script: str, name: str = "sac_under_test"):
     sys.modules[name] = module  # dataclasses with postponed annotations look their module up here
     spec.loader.exec_module(module)
     return module
+
+
+def checkpoint_policy(path: Path) -> tuple[str, Callable[[np.ndarray], np.ndarray]]:
+    """The env id a SAC or JIRL checkpoint was trained on, and its deterministic policy in env units;
+    ValueError for a file that is not such a checkpoint."""
+    import torch
+
+    sys.path.insert(0, str(ROOT))
+    from envs import make_env
+
+    sac = load_module(str(ROOT / "sac_continuous.py"))
+    checkpoint = sac.load_checkpoint(str(path))
+    env = make_env(checkpoint["env_id"])
+    actor = sac.actor_from_checkpoint(checkpoint, env)
+    low, high = env.action_space.low, env.action_space.high
+    env.close()
+
+    def policy(obs: np.ndarray) -> np.ndarray:
+        with torch.inference_mode():
+            _, _, action = actor.get_action(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0))
+        return sac.to_env_units(action[0].numpy(), low, high)
+
+    return checkpoint["env_id"], policy

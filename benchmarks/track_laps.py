@@ -24,7 +24,7 @@ sys.path.insert(0, str(ROOT))
 
 from envs import get_baseline, make_env  # noqa: E402
 
-from side_by_side import load_module  # noqa: E402
+from side_by_side import checkpoint_policy  # noqa: E402
 
 
 def drive(policy: Callable[[np.ndarray], np.ndarray], episodes: int, seed_offset: int) -> tuple[list[float], int]:
@@ -45,18 +45,10 @@ def drive(policy: Callable[[np.ndarray], np.ndarray], episodes: int, seed_offset
     return laps, off_lane
 
 
-def checkpoint_policy(path: Path) -> Callable[[np.ndarray], np.ndarray]:
-    sac = load_module(str(ROOT / "sac_continuous.py"))
-    env = make_env("JetRacerTrack-v0")
-    actor = sac.actor_from_checkpoint(sac.load_checkpoint(str(path)), env)
-    low, high = env.action_space.low, env.action_space.high
-    env.close()
-
-    def policy(obs: np.ndarray) -> np.ndarray:
-        with torch.inference_mode():
-            _, _, action = actor.get_action(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0))
-        return sac.to_env_units(action[0].numpy(), low, high)
-
+def track_policy(path: Path) -> Callable[[np.ndarray], np.ndarray]:
+    env_id, policy = checkpoint_policy(path)
+    if env_id != "JetRacerTrack-v0":
+        raise ValueError(f"trained on {env_id}, not JetRacerTrack-v0")
     return policy
 
 
@@ -81,7 +73,7 @@ def main() -> None:
     print(row("baseline (lane follower)", base_laps, base_off, args.episodes, reference), flush=True)
     for path in args.checkpoints:
         try:
-            policy = checkpoint_policy(path)
+            policy = track_policy(path)
         except ValueError as err:
             print(f"| {path} | unreadable: {err} | | | |")
             continue
