@@ -6,8 +6,8 @@ scores every episode with the scripts' own paired estimator, so the numbers are 
 `charts/baseline_regret` (episode form) and `charts/baseline_regret_per_step` (the paper's
 Definition 1) would add for that episode. A policy that beats the baseline on average still loses to
 it from some initial states; the mean regret per episode times the episodes of a training budget is
-what the policy would accumulate if it acted from the first step: a floor no method reaches
-with a policy of that quality acting alone.
+what the policy would accumulate if it acted alone from the first step, and what any method pays,
+on average, for the steps in which a policy of that quality acts alone.
 
     python benchmarks/regret_floor.py --budget-steps 280000 benchmarks/results/det_buf50k_280k/runs/*/*.cleanrl_model
 """
@@ -88,7 +88,7 @@ def main() -> None:
         try:
             env_id, policy = checkpoint_policy(path)
         except ValueError as err:
-            print(f"| {path} | unreadable: {err} | | | | | |", flush=True)
+            print(f"| {path} | unreadable: {' '.join(str(err).split())} | | | | | |", flush=True)  # one table row
             continue
         floor = measure(env_id, policy, get_baseline(env_id), args.episodes, args.seed_offset)
         budget = "–"

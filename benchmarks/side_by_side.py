@@ -78,7 +78,8 @@ def checkpoint_policy(path: Path) -> tuple[str, Callable[[np.ndarray], np.ndarra
     ValueError for a file that is not such a checkpoint."""
     import torch
 
-    sys.path.insert(0, str(ROOT))
+    if str(ROOT) not in sys.path:
+        sys.path.insert(0, str(ROOT))
     from envs import make_env
 
     sac = load_module(str(ROOT / "sac_continuous.py"))

@@ -75,7 +75,7 @@ def main() -> None:
         try:
             policy = track_policy(path)
         except ValueError as err:
-            print(f"| {path} | unreadable: {err} | | | |")
+            print(f"| {path} | unreadable: {' '.join(str(err).split())} | | | |")  # one table row
             continue
         laps, off_lane = drive(policy, args.episodes, args.seed_offset)
         print(row(str(path), laps, off_lane, args.episodes, reference), flush=True)

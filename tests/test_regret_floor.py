@@ -5,6 +5,7 @@ import sys
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 
 from conftest import ROOT
 
@@ -58,16 +59,43 @@ def test_the_floor_over_a_budget():
     assert floor.over(280_000) == pytest.approx((2_800.0, 14_000.0))
 
 
-def test_a_corrupt_checkpoint_is_reported_and_the_rest_still_run(tmp_path, monkeypatch, capsys):
+def small_checkpoint(sac, path):
+    env = sac.make_env("Pendulum-v1", 0)
+    actor, qf = sac.Actor(3, 1, 16), sac.SoftQNetwork(3, 1, 16)
+    sac.save_checkpoint(str(path), "Pendulum-v1", env, actor, qf, sac.Args(hidden_size=16))
+    return actor
+
+
+def test_a_checkpoint_acts_with_its_mean_action_in_env_units(tmp_path, sac):
+    actor = small_checkpoint(sac, tmp_path / "model.cleanrl_model")
+    env_id, policy = regret_floor.checkpoint_policy(tmp_path / "model.cleanrl_model")
+    assert env_id == "Pendulum-v1"
+    for obs in np.random.default_rng(0).uniform(-1, 1, size=(5, 3)).astype(np.float32):
+        with torch.no_grad():
+            mean, _ = actor(torch.from_numpy(obs).unsqueeze(0))
+        np.testing.assert_allclose(policy(obs), 2.0 * np.tanh(mean[0].numpy()), rtol=1e-5)  # Pendulum: [-2, 2]
+
+
+def test_a_corrupt_checkpoint_is_reported_and_the_rest_still_run(tmp_path, monkeypatch, capsys, sac):
+    good = tmp_path / "good.cleanrl_model"
+    small_checkpoint(sac, good)
     bad = tmp_path / "bad.cleanrl_model"
     bad.write_bytes(b"not a checkpoint")
-    monkeypatch.setattr(sys, "argv", ["regret_floor.py", "--episodes", "1", str(bad)])
+    monkeypatch.setattr(sys, "argv", ["regret_floor.py", "--episodes", "1", "--budget-steps", "400", str(bad), str(good)])
     regret_floor.main()
-    out = capsys.readouterr().out
-    assert "unreadable" in out and str(bad) in out
+    rows = capsys.readouterr().out.splitlines()
+    assert str(bad) in rows[2] and "unreadable" in rows[2]
+    assert str(good) in rows[3] and "unreadable" not in rows[3]
+    cells = [cell.strip() for cell in rows[3].split("|")[1:-1]]
+    episode_form, per_step = (float(x.replace(",", "")) for x in cells[6].split(" / "))
+    # 400 steps are 2 episodes of 200; the budget cells are rounded to whole numbers
+    assert per_step == pytest.approx(2 * float(cells[5]), abs=0.6)
+    assert episode_form == pytest.approx(2 * float(cells[4]), abs=0.6)
+    assert per_step > 0.0
 
 
-def test_episodes_must_be_positive(monkeypatch):
+def test_episodes_must_be_positive(monkeypatch, capsys):
     monkeypatch.setattr(sys, "argv", ["regret_floor.py", "--episodes", "0", "x.cleanrl_model"])
     with pytest.raises(SystemExit):
         regret_floor.main()
+    assert "--episodes must be at least 1" in capsys.readouterr().err
