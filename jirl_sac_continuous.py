@@ -745,7 +745,7 @@ if __name__ == "__main__":
                 if rl_acts and c == 0.0 and args.deterministic_after_guidance:
                     rl_action = np.tanh(mean).astype(np.float32)
                 gate_log_prob_sum += log_prob_baseline
-                gate_log_rho_sum += log_positive_rho(rho)
+                gate_log_rho_sum += gate.log_rhos[-1]  # log rho+, as the gate just computed it
                 gate_terms += 1
         action = rl_action if rl_acts else baseline_action.astype(np.float32)
         control_switches += gate.record(rl_acts)
