@@ -117,6 +117,40 @@ class Args:
     rl_control_window: int = 1000
     """charts/rl_control_fraction is the share of the last this-many steps in which the agent acted"""
 
+    def __post_init__(self) -> None:
+        """Out-of-range values end the parse with a message naming each flag (tyro prints it)."""
+        rules = [
+            ("seed", 0 <= self.seed < 2**32, "in [0, 2**32)"),  # numpy's global seed
+            ("torch_threads", self.torch_threads >= 1, ">= 1"),
+            ("eval_episodes", self.eval_episodes >= 1, ">= 1"),
+            ("log_every", self.log_every >= 1, ">= 1"),
+            ("total_timesteps", self.total_timesteps >= 1, ">= 1"),
+            ("buffer_size", self.buffer_size >= 1, ">= 1"),
+            ("gamma", 0.0 <= self.gamma <= 1.0, "in [0, 1]"),
+            ("tau", 0.0 < self.tau <= 1.0, "in (0, 1]"),
+            ("batch_size", self.batch_size >= 1, ">= 1"),
+            ("learning_starts", self.learning_starts >= 0, ">= 0"),
+            ("hidden_size", self.hidden_size >= 1, ">= 1"),
+            ("policy_lr", 0.0 < self.policy_lr < math.inf, "> 0"),
+            ("q_lr", 0.0 < self.q_lr < math.inf, "> 0"),
+            ("policy_frequency", self.policy_frequency >= 1, ">= 1"),
+            ("target_network_frequency", self.target_network_frequency >= 1, ">= 1"),
+            ("alpha", 0.0 < self.alpha < math.inf, "> 0"),
+            ("baseline_eval_episodes", self.baseline_eval_episodes >= 1, ">= 1"),
+            ("gate_c", 0.0 <= self.gate_c < math.inf, ">= 0"),
+            ("gate_k", self.gate_k >= 0, ">= 0"),
+            ("guidance_steps", self.guidance_steps is None or self.guidance_steps >= 0, ">= 0"),
+            ("handover_episodes", self.handover_episodes >= 1, ">= 1"),
+            ("handover_tolerance", 0.0 <= self.handover_tolerance < math.inf, ">= 0"),
+            ("penalty_sigma2", 0.0 < self.penalty_sigma2 < math.inf, "> 0"),
+            ("switch_penalty", math.isfinite(self.switch_penalty), "finite"),
+            ("guidance_fade_steps", self.guidance_fade_steps >= 0, ">= 0"),
+            ("rl_control_window", self.rl_control_window >= 1, ">= 1"),
+        ]  # comparisons with NaN are False, so NaN fails every rule
+        problems = [f"--{name.replace('_', '-')} must be {rule}, got {getattr(self, name)}" for name, ok, rule in rules if not ok]
+        if problems:
+            raise ValueError("; ".join(problems))
+
 
 def make_env(env_id: str, seed: int, capture_video: bool = False, run_name: str = "") -> gym.Env:
     """One env (no vector wrapper: episodes are reset explicitly, so there is no autoreset to undo)."""
@@ -651,10 +685,6 @@ if __name__ == "__main__":
             raise ValueError(f"JIRL needs a baseline and {args.env_id} has none; pass --baseline module:function")
         if args.guidance_steps is None:
             args.guidance_steps = args.total_timesteps // 2
-        if args.penalty_sigma2 <= 0 or args.gate_c < 0 or args.gate_k < 0 or args.guidance_steps < 0:
-            raise ValueError("--penalty-sigma2 must be > 0; --gate-c, --gate-k and --guidance-steps must be >= 0")
-        if args.handover_episodes < 1 or args.handover_tolerance < 0 or args.guidance_fade_steps < 0:
-            raise ValueError("--handover-episodes must be >= 1, --handover-tolerance and --guidance-fade-steps >= 0")
     except ValueError as err:
         raise SystemExit(f"{args.exp_name}: error: {err}")
     if baseline is None and args.regret_estimator in ("paired", "unpaired"):

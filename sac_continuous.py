@@ -86,6 +86,31 @@ class Args:
     baseline_eval_episodes: int = 10
     """episodes measuring the baseline's mean return and reward per step (the unpaired estimator)"""
 
+    def __post_init__(self) -> None:
+        """Out-of-range values end the parse with a message naming each flag (tyro prints it)."""
+        rules = [
+            ("seed", 0 <= self.seed < 2**32, "in [0, 2**32)"),  # numpy's global seed
+            ("torch_threads", self.torch_threads >= 1, ">= 1"),
+            ("eval_episodes", self.eval_episodes >= 1, ">= 1"),
+            ("log_every", self.log_every >= 1, ">= 1"),
+            ("total_timesteps", self.total_timesteps >= 1, ">= 1"),
+            ("buffer_size", self.buffer_size >= 1, ">= 1"),
+            ("gamma", 0.0 <= self.gamma <= 1.0, "in [0, 1]"),
+            ("tau", 0.0 < self.tau <= 1.0, "in (0, 1]"),
+            ("batch_size", self.batch_size >= 1, ">= 1"),
+            ("learning_starts", self.learning_starts >= 0, ">= 0"),
+            ("hidden_size", self.hidden_size >= 1, ">= 1"),
+            ("policy_lr", 0.0 < self.policy_lr < math.inf, "> 0"),
+            ("q_lr", 0.0 < self.q_lr < math.inf, "> 0"),
+            ("policy_frequency", self.policy_frequency >= 1, ">= 1"),
+            ("target_network_frequency", self.target_network_frequency >= 1, ">= 1"),
+            ("alpha", 0.0 < self.alpha < math.inf, "> 0"),
+            ("baseline_eval_episodes", self.baseline_eval_episodes >= 1, ">= 1"),
+        ]  # comparisons with NaN are False, so NaN fails every rule
+        problems = [f"--{name.replace('_', '-')} must be {rule}, got {getattr(self, name)}" for name, ok, rule in rules if not ok]
+        if problems:
+            raise ValueError("; ".join(problems))
+
 
 def make_env(env_id: str, seed: int, capture_video: bool = False, run_name: str = "") -> gym.Env:
     """One env (no vector wrapper: episodes are reset explicitly, so there is no autoreset to undo)."""

@@ -3,6 +3,7 @@
 # baseline regret as the SAC scripts.
 # Run: python trpo_il.py --env-id Pendulum-v1 --total-timesteps 100000
 import importlib
+import math
 import os
 import random
 import time
@@ -114,6 +115,40 @@ class Args:
     """paired: a shadow env runs the baseline from each training episode's reset seed; unpaired: the baseline's mean reward per step; auto: paired when the env reproduces a seeded reset"""
     baseline_eval_episodes: int = 10
     """episodes measuring the baseline's mean return and reward per step (the unpaired estimator)"""
+
+    def __post_init__(self) -> None:
+        """Out-of-range values end the parse with a message naming each flag (tyro prints it); None
+        fields are filled with tuned values later and checked only when set."""
+        rules = [
+            ("seed", 0 <= self.seed < 2**32, "in [0, 2**32)"),  # numpy's global seed
+            ("torch_threads", self.torch_threads >= 1, ">= 1"),
+            ("eval_episodes", self.eval_episodes >= 1, ">= 1"),
+            ("total_timesteps", self.total_timesteps >= 1, ">= 1"),
+            ("learning_rate", 0.0 < self.learning_rate < math.inf, "> 0"),
+            ("num_steps", self.num_steps is None or self.num_steps >= 1, ">= 1"),
+            ("gamma", self.gamma is None or 0.0 <= self.gamma <= 1.0, "in [0, 1]"),
+            ("gae_lambda", 0.0 <= self.gae_lambda <= 1.0, "in [0, 1]"),
+            ("max_kl", 0.0 < self.max_kl < math.inf, "> 0"),
+            ("cg_max_steps", self.cg_max_steps >= 1, ">= 1"),
+            ("cg_damping", 0.0 <= self.cg_damping < math.inf, ">= 0"),
+            ("line_search_shrinking_factor", 0.0 < self.line_search_shrinking_factor < 1.0, "in (0, 1)"),
+            ("line_search_max_iter", self.line_search_max_iter >= 1, ">= 1"),
+            ("n_critic_updates", self.n_critic_updates is None or self.n_critic_updates >= 1, ">= 1"),
+            ("critic_batch_size", self.critic_batch_size >= 1, ">= 1"),
+            ("hidden_size", self.hidden_size >= 1, ">= 1"),
+            ("il_steps", self.il_steps >= 1, ">= 1"),
+            ("il_target_mse", 0.0 <= self.il_target_mse < math.inf, ">= 0"),
+            ("il_patience", self.il_patience >= 1, ">= 1"),
+            ("il_max_epochs", self.il_max_epochs >= 1, ">= 1"),
+            ("il_batch_size", self.il_batch_size >= 1, ">= 1"),
+            ("il_lr", 0.0 < self.il_lr < math.inf, "> 0"),
+            ("il_init_std", 0.0 < self.il_init_std < math.inf, "> 0"),
+            ("il_value_epochs", self.il_value_epochs >= 1, ">= 1"),
+            ("baseline_eval_episodes", self.baseline_eval_episodes >= 1, ">= 1"),
+        ]  # comparisons with NaN are False, so NaN fails every rule
+        problems = [f"--{name.replace('_', '-')} must be {rule}, got {getattr(self, name)}" for name, ok, rule in rules if not ok]
+        if problems:
+            raise ValueError("; ".join(problems))
 
 
 def resolve_hyperparameters(args: Args) -> Args:
@@ -508,8 +543,6 @@ if __name__ == "__main__":
         baseline = load_baseline(args.baseline, args.env_id)
         if baseline is None:
             raise ValueError(f"TRPO+IL imitates a baseline and {args.env_id} has none; pass --baseline module:function")
-        if args.max_kl <= 0:
-            raise ValueError("--max-kl must be > 0")
     except ValueError as err:
         raise SystemExit(f"{args.exp_name}: error: {err}")
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]

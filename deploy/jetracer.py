@@ -15,6 +15,7 @@ Runs on the car's Python 3.8 (JetPack 5) and newer.
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import statistics
@@ -37,6 +38,7 @@ from envs.car_interface import OBS_SIZE, ActionMapping, action_to_commands, prep
 from envs.lane_follower import LaneFollower  # noqa: E402
 
 TRAIN_STATE_FORMAT = "jirl-car-training-v2"  # v2: the agent's twin critics as one ensemble
+SENDS_PER_PERIOD = 2.5  # the link sends this many frames per control period (DRIVE or STOP, feeding the watchdog)
 
 
 @dataclass
@@ -68,6 +70,27 @@ class Common:
     seed: int = 0
     """seed of the simulated car's start poses"""
 
+    def __post_init__(self) -> None:
+        """Out-of-range values end the parse with a message naming each flag (tyro prints it)."""
+        problems = [f"--{name.replace('_', '-')} must be {rule}, got {getattr(self, name)}" for name, ok, rule in self.rules() if not ok]
+        if problems:
+            raise ValueError("; ".join(problems))
+
+    def rules(self) -> List[Tuple[str, bool, str]]:
+        """(field, whether its value is valid, the rule); NaN fails every comparison."""
+        send_period_ms = 1000.0 / (SENDS_PER_PERIOD * self.control_hz) if self.control_hz > 0 else 0.0
+        return [
+            ("control_hz", 0.0 < self.control_hz < math.inf, "> 0"),
+            ("max_throttle", 0.0 <= self.max_throttle <= 1.0, "in [0, 1]"),
+            ("min_throttle", 0.0 <= self.min_throttle <= self.max_throttle, "in [0, --max-throttle]"),
+            ("max_steering_rate", 0.0 < self.max_steering_rate < math.inf, "> 0"),  # a negative rate would steer by itself
+            ("watchdog_ms", send_period_ms < self.watchdog_ms <= 65535, f"longer than the link's send period ({send_period_ms:.0f} ms) and <= 65535"),
+            ("estop_button", self.estop_button >= 0, ">= 0"),  # a negative index would never e-stop
+            ("takeover_axis", self.takeover_axis >= 0, ">= 0"),
+            ("steering_axis", self.steering_axis >= 0, ">= 0"),
+            ("seed", 0 <= self.seed < 2**32, "in [0, 2**32)"),
+        ]
+
 
 @dataclass
 class Run(Common):
@@ -76,11 +99,17 @@ class Run(Common):
     steps: int = 1200
     """control steps to drive (1200 = 1 minute at 20 Hz)"""
 
+    def rules(self) -> List[Tuple[str, bool, str]]:
+        return [*super().rules(), ("steps", self.steps >= 1, ">= 1")]
+
 
 @dataclass
 class Baseline(Common):
     steps: int = 1200
     """control steps to drive; the mean reward per step printed at the end is train's --baseline-reward-per-step"""
+
+    def rules(self) -> List[Tuple[str, bool, str]]:
+        return [*super().rules(), ("steps", self.steps >= 1, ">= 1")]
 
 
 def car_jirl_defaults() -> jirl.Args:
@@ -109,6 +138,15 @@ class Train(Common):
     """the baseline's measured reward per step (from `baseline`), for the unpaired regret estimate"""
     jirl: jirl.Args = field(default_factory=car_jirl_defaults)
     """JIRL and SAC hyperparameters (see jirl_sac_continuous.py --help)"""
+
+    def rules(self) -> List[Tuple[str, bool, str]]:
+        return [
+            *super().rules(),
+            ("total_steps", self.total_steps >= 1, ">= 1"),
+            ("train_every", self.train_every >= 1, ">= 1"),
+            ("gradient_steps", self.gradient_steps >= 1, ">= 1"),
+            ("baseline_reward_per_step", math.isfinite(self.baseline_reward_per_step), "finite"),
+        ]
 
 
 def car_reward(throttle_command: float, off_track: bool, mapping: ActionMapping) -> float:
@@ -144,12 +182,12 @@ class CarSession:
             signal.signal(sig, self._on_signal)
         self.mapping = ActionMapping(min_throttle=args.min_throttle, max_throttle=args.max_throttle)
         self.safety = SafetyFilter(self.mapping, args.max_steering_rate, self.period)
-        self.link = HostLink(args.port, send_hz=2.5 * args.control_hz, command_timeout=2.0 * self.period,
+        self.link = HostLink(args.port, send_hz=SENDS_PER_PERIOD * args.control_hz, command_timeout=2.0 * self.period,
                              watchdog_ms=args.watchdog_ms, throttle_cap=args.max_throttle).start()  # fmt: skip
         self.world = SimWorld(self.link._port.controller, seed=args.seed) if args.port.startswith("mockjetracer") else None
         self.camera = open_camera(args.camera, self.world)
         self.gamepad = Gamepad(args.gamepad) if args.gamepad else None
-        self.writer = SummaryWriter(os.path.join(args.log_dir, f"{mode}__{int(time.time())}"))
+        self.writer = None
         self.previous_action = np.array([0.0, -1.0], dtype=np.float32)
         self.frames_dropped = 0
         self.laps_logged = 0
@@ -157,8 +195,11 @@ class CarSession:
         self._last_tick = time.monotonic()
         self._next_tick = self._last_tick
         if not self.link.arm():
+            info = self.link.hello()  # the controller's INFO names the watchdog periods it accepts
             self.close()
-            raise RuntimeError(f"the controller on {args.port} did not arm")
+            accepts = f"; it accepts {info.fields[3]}-{info.fields[4]} ms" if info is not None else "; it did not answer HELLO either"
+            raise SystemExit(f"{mode}: error: the controller on {args.port} did not arm with --watchdog-ms {args.watchdog_ms}{accepts}")
+        self.writer = SummaryWriter(os.path.join(args.log_dir, f"{mode}__{int(time.time())}"))  # no log of a session that never armed
 
     def _on_signal(self, *_) -> None:
         self.stop_requested = True
@@ -237,7 +278,8 @@ class CarSession:
             self.world.close()
         if self.gamepad is not None:
             self.gamepad.close()
-        self.writer.close()
+        if self.writer is not None:
+            self.writer.close()
 
 
 class CarSpaces:
@@ -355,8 +397,6 @@ def train(args: Train) -> dict:
     import torch
 
     hp = args.jirl
-    if hp.penalty_sigma2 <= 0:
-        raise SystemExit("train: error: --jirl.penalty-sigma2 must be > 0")
     if hp.guidance_schedule not in ("geometric", "linear"):
         raise SystemExit("train: error: --jirl.guidance-schedule must be geometric or linear on the car (guidance by time)")
     torch.manual_seed(args.seed)

@@ -113,7 +113,6 @@ def test_measuring_an_intervening_baseline_is_a_clear_error(tmp_path):
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["--penalty-sigma2", "-0.1"], "--penalty-sigma2 must be > 0"),
         (["--env-id", "MountainCarContinuous-v0"], "JIRL needs a baseline"),
         (["--env-id", "CartPole-v1"], "Discrete(2) action space"),
     ],
