@@ -41,6 +41,11 @@ class CarSpec:
     camera_pitch: float = 0.45  # rad below the horizon
     camera_fov: float = 120.0  # degrees, vertical (the car's camera is a wide-angle one)
 
+    def __post_init__(self) -> None:
+        lengths = (self.wheelbase, self.max_speed, self.steering_lag, self.speed_lag)  # the lags divide the step
+        if not (all(v > 0 for v in lengths) and 0 < self.max_steering_angle < math.pi / 2 and 0 <= self.throttle_deadband < 1 and 0 < self.camera_fov < 180):
+            raise ValueError(f"impossible car: {self} (wheelbase, speed and lags > 0, steering angle in (0, pi/2), deadband in [0, 1), fov in (0, 180))")
+
 
 @contextlib.contextmanager
 def _quiet_stdout():
@@ -79,6 +84,8 @@ class JetRacerTrackEnv(gym.Env):
 
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        if not 0 < control_hz < math.inf:
+            raise ValueError(f"control_hz must be > 0, got {control_hz}")
         self.track, self.car, self.mapping = track, car, mapping
         self.dt = 1.0 / control_hz
         self.progress_reward, self.off_track_reward = progress_reward, off_track_reward

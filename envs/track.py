@@ -29,7 +29,8 @@ class TrackSpec:
     margin: float = 1.0  # m of floor drawn around the lane
 
     def __post_init__(self) -> None:
-        if self.straight_length < 0 or self.radius <= self.lane_width / 2 or self.lane_width <= 2 * self.tape_width:
+        sizes = (self.straight_length, self.tape_width, self.margin)
+        if not (all(v >= 0 for v in sizes) and self.radius > self.lane_width / 2 and self.lane_width > 2 * self.tape_width):  # NaN fails too
             raise ValueError(f"impossible track: {self}")
 
     @property

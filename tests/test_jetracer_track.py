@@ -185,3 +185,17 @@ def test_action_mapping():
         action_to_commands(np.array([np.nan, 0.0]))
     with pytest.raises(ValueError, match="invalid action mapping"):
         ActionMapping(min_throttle=0.7, max_throttle=0.6)
+
+
+def test_impossible_tracks_cars_and_rates_are_refused():
+    from envs.jetracer_track import CarSpec
+
+    for bad in (dict(steering_lag=0.0), dict(wheelbase=-0.2), dict(throttle_deadband=1.0), dict(max_steering_angle=math.pi / 2), dict(camera_fov=math.nan), dict(speed_lag=math.nan)):
+        with pytest.raises(ValueError, match="impossible car"):
+            CarSpec(**bad)
+    with pytest.raises(ValueError, match="control_hz must be > 0"):
+        make_env("JetRacerTrack-v0", 0, control_hz=0.0)
+    with pytest.raises(ValueError, match="impossible track"):
+        TrackSpec(radius=0.2)  # the lane (0.5 m wide) would cross the bend's centre
+    with pytest.raises(ValueError, match="impossible track"):
+        TrackSpec(margin=math.nan)  # not the first size: min() would have let a NaN there through
