@@ -158,6 +158,8 @@ class SafetyFilter:
     """Policy action -> commands the car may receive: NaN means STOP (None); steering clamped and rate-limited."""
 
     def __init__(self, mapping: ActionMapping, max_steering_rate: float, period: float) -> None:
+        if not 0.0 < max_steering_rate * period < math.inf:  # np.clip with bounds the wrong way round steers by itself
+            raise ValueError(f"the steering change per step must be > 0, got {max_steering_rate} * {period}")
         self.mapping, self.max_step = mapping, max_steering_rate * period
         self.steering = 0.0
 

@@ -81,6 +81,8 @@ def test_valid_values_at_the_edges_pass():
 def test_deploy_checks_the_car_safety_settings():
     with pytest.raises(ValueError, match="--max-steering-rate must be > 0"):
         jetracer.Run(max_steering_rate=-1.0)  # once drove: a negative rate limit turned the wheels by itself
+    with pytest.raises(ValueError, match="steering change per step must be > 0"):
+        jetracer.SafetyFilter(jetracer.ActionMapping(), max_steering_rate=-1.0, period=0.05)
     with pytest.raises(ValueError, match="--min-throttle must be in"):
         jetracer.Baseline(min_throttle=0.7, max_throttle=0.6)
     with pytest.raises(ValueError, match=r"--watchdog-ms must be longer than the link's send period \(20 ms\)"):
