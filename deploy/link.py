@@ -10,6 +10,7 @@ back-off, and a reopened link is never re-armed by itself: arming is always the 
 
 from __future__ import annotations
 
+import math
 import statistics
 import threading
 import time
@@ -62,6 +63,9 @@ class HostLink:
         opener: Callable = _open_url,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
+        if not (0 < send_hz < math.inf and command_timeout > 0 and 0 < watchdog_ms <= 65535 and 0 <= throttle_cap <= 1):
+            raise ValueError(f"HostLink needs send_hz > 0, command_timeout > 0, watchdog_ms in (0, 65535] and throttle_cap in [0, 1];"
+                             f" got {send_hz}, {command_timeout}, {watchdog_ms}, {throttle_cap}")
         self.url, self.send_period, self.command_timeout = url, 1.0 / send_hz, command_timeout
         self.watchdog_ms, self.throttle_cap, self.backoff = watchdog_ms, throttle_cap, backoff
         self._opener, self._clock = opener, clock

@@ -138,6 +138,12 @@ def wait_until(predicate, timeout=1.0):
     return False
 
 
+@pytest.mark.parametrize("bad", [dict(send_hz=0.0), dict(command_timeout=-1.0), dict(watchdog_ms=70_000), dict(throttle_cap=1.5), dict(send_hz=float("nan"))])
+def test_link_refuses_settings_the_protocol_cannot_carry(bad):
+    with pytest.raises(ValueError, match="HostLink needs"):
+        HostLink("mockjetracer://", **bad)  # before any port is opened
+
+
 def test_link_drives_while_fresh_and_stops_when_stale(mock_link):
     controller = mock_link._port.controller
     assert mock_link.hello().fields[0] == p.VERSION
