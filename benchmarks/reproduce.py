@@ -98,6 +98,20 @@ class Args:
     report_only: bool = False
     """skip training; only read the finished runs and write the report"""
 
+    def __post_init__(self) -> None:
+        """Out-of-range values end the parse with a message naming each flag (tyro prints it)."""
+        rules = [
+            ("envs", len(self.envs) >= 1, "at least one env"),
+            ("methods", len(self.methods) >= 1, "at least one method"),
+            ("seeds", len(self.seeds) >= 1 and all(0 <= seed < 2**32 for seed in self.seeds), "at least one seed, each in [0, 2**32)"),
+            ("steps", self.steps is None or self.steps >= 1, ">= 1"),
+            ("workers", self.workers >= 1, ">= 1"),
+            ("slurm_timeout_min", self.slurm_timeout_min >= 1, ">= 1"),
+        ]
+        problems = [f"--{name.replace('_', '-')} must be {rule}, got {getattr(self, name)}" for name, ok, rule in rules if not ok]
+        if problems:
+            raise ValueError("; ".join(problems))
+
 
 # -- running ------------------------------------------------------------------------------------
 def run_dir(workdir: Path, env: str, method: str, seed: int) -> Path:
@@ -116,14 +130,21 @@ def done_arguments(folder: Path) -> Optional[list[str]]:
     return marker.read_text().split()[2:] if marker.exists() else None
 
 
-def run_one(cmd: list[str], folder: str) -> str:
-    """Train one run in `folder`; write DONE on success. Returns the folder."""
+def run_one(cmd: list[str], folder: str) -> int:
+    """Train one run in `folder`, its output in log.txt; write DONE on success. Returns the exit code."""
     path = Path(folder)
     path.mkdir(parents=True, exist_ok=True)
     with open(path / "log.txt", "w") as log:
-        subprocess.run(cmd, cwd=path, stdout=log, stderr=subprocess.STDOUT, check=True)
-    (path / "DONE").write_text(" ".join(cmd) + "\n")
-    return folder
+        code = subprocess.run(cmd, cwd=path, stdout=log, stderr=subprocess.STDOUT).returncode
+    if code == 0:
+        (path / "DONE").write_text(" ".join(cmd) + "\n")
+    return code
+
+
+def report_failures(failed: list[str], total: int) -> None:
+    """After every run has ended: one line naming the failed runs, whose log.txt says why."""
+    if failed:
+        raise SystemExit(f"reproduce: error: {len(failed)} of {total} runs failed; see log.txt in {', '.join(failed)}")
 
 
 def launch(args: Args) -> None:
@@ -138,15 +159,19 @@ def launch(args: Args) -> None:
     if not todo:
         return
     if args.launcher == "local":
-        start, finished = time.time(), 0
+        start, finished, failed = time.time(), 0, []
         with ThreadPoolExecutor(max_workers=args.workers) as pool:
             futures = {pool.submit(run_one, cmd, folder): folder for cmd, folder in todo}
             for future in as_completed(futures):
-                future.result()
+                code = future.result()
+                if code != 0:  # the other runs go on; their results are not lost to one failure
+                    failed.append(futures[future])
                 finished += 1
                 elapsed = time.time() - start
                 eta = elapsed / finished * (len(todo) - finished)
-                print(f"[{finished}/{len(todo)}] {futures[future]} done; elapsed {elapsed / 60:.1f} min, ETA {eta / 60:.1f} min", flush=True)
+                outcome = "done" if code == 0 else f"FAILED (exit {code})"
+                print(f"[{finished}/{len(todo)}] {futures[future]} {outcome}; elapsed {elapsed / 60:.1f} min, ETA {eta / 60:.1f} min", flush=True)
+        report_failures(failed, len(todo))
         return
     import submitit
 
@@ -161,10 +186,18 @@ def launch(args: Args) -> None:
         Path(folder).mkdir(parents=True, exist_ok=True)
         # CommandFunction is importable by the workers; a function of this script would not be
         submitted.append((executor.submit(submitit.helpers.CommandFunction(cmd, cwd=folder)), cmd, folder))
+    failed = []
     for i, (job, cmd, folder) in enumerate(submitted, 1):
-        (Path(folder) / "log.txt").write_text(job.result())
+        try:
+            (Path(folder) / "log.txt").write_text(job.result())
+        except Exception as err:  # submitit raises the script's failure here, with its output
+            (Path(folder) / "log.txt").write_text(str(err))
+            failed.append(folder)
+            print(f"[{i}/{len(submitted)}] {folder} FAILED (job {job.job_id})", flush=True)
+            continue
         (Path(folder) / "DONE").write_text(" ".join(cmd) + "\n")
         print(f"[{i}/{len(submitted)}] {folder} done (job {job.job_id})", flush=True)
+    report_failures(failed, len(submitted))
 
 
 # -- reading and reporting ----------------------------------------------------------------------

@@ -129,3 +129,25 @@ def test_every_preset_command_parses_and_the_paper_preset_bounds_sac_buffers(mon
     assert paper["Pendulum-v1"]["jirl"].gate_k == 1 and paper["Pendulum-v1"]["jirl"].penalty_sigma2 == 0.01
     assert parsed["local", "Pendulum-v1", "jirl"].buffer_size == parsed["local", "Pendulum-v1", "sac"].buffer_size == 1_000_000
     assert parsed["paper", "Pendulum-v1", "sac"].total_timesteps == 280_000 and parsed["paper", "Pendulum-v1", "sac"].seed == 3
+
+
+@pytest.mark.parametrize("launcher", ["local", "submitit-local"])
+def test_a_failed_run_is_named_and_the_others_finish(tmp_path, monkeypatch, launcher):
+    def command(preset, env, method, seed, steps=None):  # seed 2 fails the way a script refusing its arguments does
+        code = "import sys; print('boom'); sys.exit(2)" if seed == 2 else "print('fine')"
+        return [sys.executable, "-c", code, env, method, str(seed)]
+
+    monkeypatch.setattr(reproduce, "command", command)
+    args = reproduce.Args(envs=("Pendulum-v1",), methods=("sac",), seeds=(1, 2, 3), preset="quick", launcher=launcher,
+                          workdir=str(tmp_path / "work"), output=str(tmp_path / "out"), workers=2)  # fmt: skip
+    with pytest.raises(SystemExit, match=r"1 of 3 runs failed; see log.txt in .*seed2$"):
+        reproduce.launch(args)
+    folder = {seed: reproduce.run_dir(tmp_path / "work", "Pendulum-v1", "sac", seed) for seed in (1, 2, 3)}
+    assert (folder[1] / "DONE").exists() and (folder[3] / "DONE").exists() and not (folder[2] / "DONE").exists()
+    assert "boom" in (folder[2] / "log.txt").read_text()
+
+
+def test_arguments_out_of_range_are_refused():
+    for bad in (dict(workers=0), dict(steps=0), dict(seeds=()), dict(seeds=(1, -1))):
+        with pytest.raises(ValueError, match=f"--{next(iter(bad))} must be"):
+            reproduce.Args(**bad)
