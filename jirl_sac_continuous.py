@@ -184,13 +184,28 @@ def load_baseline(spec: str, env_id: str) -> Optional[Callable]:
             baseline = getattr(importlib.import_module(module_name), attribute)
         except (ImportError, AttributeError) as err:
             raise ValueError(f"cannot load baseline {spec!r}: {err}") from None
-        return baseline() if isinstance(baseline, type) else baseline
+        baseline = baseline() if isinstance(baseline, type) else baseline
+        if not callable(baseline):
+            raise ValueError(f"baseline {spec!r} is a {type(baseline).__name__}, not a function or class")
+        return baseline
     if project_baseline is None:
         return None
     try:
         return project_baseline(env_id)
     except ValueError:
         return None
+
+
+def check_baseline_action(action, space: gym.spaces.Box) -> np.ndarray:
+    """The baseline's action shaped like the action space (a bare number for a 1-D space is fine);
+    ValueError unless it holds one finite number per action dimension (env units)."""
+    try:
+        values = np.asarray(action, dtype=np.float64)
+    except (TypeError, ValueError):
+        values = np.array([np.nan])
+    if values.size != math.prod(space.shape) or not np.all(np.isfinite(values)):
+        raise ValueError(f"the baseline returned {action!r}; expected {math.prod(space.shape)} finite number(s) in env units")
+    return np.asarray(action).reshape(space.shape)
 
 
 def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -203,7 +218,7 @@ def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.nd
         action = baseline(obs)
         if action is None:
             raise ValueError("the baseline returned None (it only intervenes), so it cannot be measured; use --regret-estimator off")
-        obs, reward, terminated, truncated, _ = env.step(action)
+        obs, reward, terminated, truncated, _ = env.step(check_baseline_action(action, env.action_space))
         rewards.append(float(reward))
         done = terminated or truncated
     return first_obs, np.asarray(rewards)
@@ -721,7 +736,8 @@ if __name__ == "__main__":
         try:
             traces = [baseline_rollout(shadow_env, baseline, args.seed + EVAL_SEED_OFFSET + i)[1] for i in range(args.baseline_eval_episodes)]
         except ValueError as err:
-            earned_note = " and --guidance-schedule geometric" if earned_guidance else ""
+            # an intervening baseline cannot be measured, and the earned schedule measures it too
+            earned_note = " and --guidance-schedule geometric" if earned_guidance and "returned None" in str(err) else ""
             raise SystemExit(f"{args.exp_name}: error: {err}{earned_note}")
         baseline_return = float(np.mean([t.sum() for t in traces]))
         baseline_reward_per_step = float(sum(t.sum() for t in traces) / sum(len(t) for t in traces))
@@ -760,7 +776,7 @@ if __name__ == "__main__":
             rl_acts, baseline_action = True, None
             gate.skip()
         else:
-            baseline_action = to_policy_units(baseline_env_action, low, high)
+            baseline_action = to_policy_units(check_baseline_action(baseline_env_action, env.action_space), low, high)
             if args.intervention_mode:
                 rl_acts = False
             else:  # Alg. 1, line 4: the gate (Alg. 3)

@@ -194,13 +194,28 @@ def load_baseline(spec: str, env_id: str) -> Optional[Callable]:
             baseline = getattr(importlib.import_module(module_name), attribute)
         except (ImportError, AttributeError) as err:
             raise ValueError(f"cannot load baseline {spec!r}: {err}") from None
-        return baseline() if isinstance(baseline, type) else baseline
+        baseline = baseline() if isinstance(baseline, type) else baseline
+        if not callable(baseline):
+            raise ValueError(f"baseline {spec!r} is a {type(baseline).__name__}, not a function or class")
+        return baseline
     if project_baseline is None:
         return None
     try:
         return project_baseline(env_id)
     except ValueError:
         return None
+
+
+def check_baseline_action(action, space: gym.spaces.Box) -> np.ndarray:
+    """The baseline's action shaped like the action space (a bare number for a 1-D space is fine);
+    ValueError unless it holds one finite number per action dimension (env units)."""
+    try:
+        values = np.asarray(action, dtype=np.float64)
+    except (TypeError, ValueError):
+        values = np.array([np.nan])
+    if values.size != math.prod(space.shape) or not np.all(np.isfinite(values)):
+        raise ValueError(f"the baseline returned {action!r}; expected {math.prod(space.shape)} finite number(s) in env units")
+    return np.asarray(action).reshape(space.shape)
 
 
 def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -213,7 +228,7 @@ def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.nd
         action = baseline(obs)
         if action is None:
             raise ValueError("the baseline returned None (it only intervenes), so it cannot be measured; use --regret-estimator off")
-        obs, reward, terminated, truncated, _ = env.step(action)
+        obs, reward, terminated, truncated, _ = env.step(check_baseline_action(action, env.action_space))
         rewards.append(float(reward))
         done = terminated or truncated
     return first_obs, np.asarray(rewards)
@@ -323,6 +338,7 @@ def collect_baseline_data(env: gym.Env, baseline: Callable, steps: int, seed: in
             action = baseline(obs)
             if action is None:
                 raise ValueError("the baseline returned None (it only intervenes); imitation needs its actions everywhere")
+            action = check_baseline_action(action, env.action_space)
             obs_list.append(obs)
             action_list.append(to_policy_units(action, low, high))
             obs, reward, terminated, truncated, _ = env.step(action)
