@@ -125,6 +125,8 @@ def open_camera(spec: str, world: Optional[SimWorld] = None):
 
         return OpenCVCamera(csi_pipeline(), cv2.CAP_GSTREAMER)
     if spec.startswith("usb:"):
+        if not spec[4:].isdigit():
+            raise ValueError(f"camera {spec!r}: usb:N takes a device number N")
         return OpenCVCamera(int(spec[4:]))
     if spec.startswith("file:"):
         return OpenCVCamera(spec[5:], realtime=False)
@@ -141,7 +143,10 @@ class Gamepad:
     EVENT = struct.Struct("<IhBB")
 
     def __init__(self, path: str) -> None:
-        self.fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+        try:
+            self.fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+        except OSError as err:
+            raise ValueError(f"cannot open gamepad {path!r}: {err.strerror}") from None
         self.axes: dict = {}
         self.buttons: dict = {}
 

@@ -184,12 +184,19 @@ class CarSession:
             signal.signal(sig, self._on_signal)
         self.mapping = ActionMapping(min_throttle=args.min_throttle, max_throttle=args.max_throttle)
         self.safety = SafetyFilter(self.mapping, args.max_steering_rate, self.period)
-        self.link = HostLink(args.port, send_hz=SENDS_PER_PERIOD * args.control_hz, command_timeout=2.0 * self.period,
-                             watchdog_ms=args.watchdog_ms, throttle_cap=args.max_throttle).start()  # fmt: skip
-        self.world = SimWorld(self.link._port.controller, seed=args.seed) if args.port.startswith("mockjetracer") else None
-        self.camera = open_camera(args.camera, self.world)
-        self.gamepad = Gamepad(args.gamepad) if args.gamepad else None
-        self.writer = None
+        self.world = self.camera = self.gamepad = self.writer = None
+        try:
+            self.link = HostLink(args.port, send_hz=SENDS_PER_PERIOD * args.control_hz, command_timeout=2.0 * self.period,
+                                 watchdog_ms=args.watchdog_ms, throttle_cap=args.max_throttle).start()  # fmt: skip
+        except OSError as err:  # serial.SerialException is one
+            raise SystemExit(f"{mode}: error: cannot open the motor controller: {err}") from None
+        try:  # a missing camera or gamepad ends the run before the car is armed, with the port closed
+            self.world = SimWorld(self.link._port.controller, seed=args.seed) if args.port.startswith("mockjetracer") else None
+            self.camera = open_camera(args.camera, self.world)
+            self.gamepad = Gamepad(args.gamepad) if args.gamepad else None
+        except (ValueError, OSError) as err:
+            self.close()
+            raise SystemExit(f"{mode}: error: {err}") from None
         self.previous_action = np.array([0.0, -1.0], dtype=np.float32)
         self.frames_dropped = 0
         self.laps_logged = 0

@@ -149,3 +149,20 @@ def test_train_refuses_the_episode_based_schedule(tmp_path):
     out = subprocess.run([sys.executable, "-m", "deploy.jetracer", *args], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert out.returncode != 0 and "geometric or linear on the car" in out.stderr and "Traceback" not in out.stderr
     assert not (tmp_path / "t.pt").exists()
+
+
+@pytest.mark.parametrize(
+    "option, message",
+    [
+        (["--camera", "file:no_such_video.mp4"], "baseline: error: cannot open camera 'no_such_video.mp4'"),
+        (["--camera", "usb:left"], "usb:N takes a device number N"),
+        (["--gamepad", "/dev/input/no_such_js"], "cannot open gamepad '/dev/input/no_such_js': No such file or directory"),
+        (["--port", "/dev/no_such_tty"], "baseline: error: cannot open the motor controller"),
+    ],
+)
+def test_missing_hardware_is_a_one_line_error_before_the_car_is_armed(tmp_path, option, message):
+    args = ["baseline", "--steps", "5", "--log-dir", str(tmp_path / "runs"), *option]
+    out = subprocess.run([sys.executable, "-m", "deploy.jetracer", *args], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert out.returncode != 0 and message in out.stderr.strip().splitlines()[-1], out.stderr  # above it, pybullet's banner
+    assert "Traceback" not in out.stderr, out.stderr
+    assert not (tmp_path / "runs").exists()
