@@ -393,11 +393,18 @@ def load_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
         raise ValueError(f"{path} is not a readable training state ({type(err).__name__}: {err})") from None
     if not isinstance(state, dict) or state.get("format") != TRAIN_STATE_FORMAT:
         raise ValueError(f"{path} is not a {TRAIN_STATE_FORMAT} file")
+    if state["hidden_size"] != sac.args.hidden_size:  # checked before anything is loaded into the agent
+        raise ValueError(f"{path} holds an agent of {state['hidden_size']} units, not --jirl.hidden-size {sac.args.hidden_size}")
     sac.load_state_dict(state["sac"])
+    # The rows are saved in ring order with the next write position; rolled, they run oldest to newest,
+    # so a buffer of another capacity takes the newest rows and goes on writing after them.
     n = len(state["buffer"]["obs"])
+    kept = min(n, rb.capacity)
     for name, values in state["buffer"].items():
-        getattr(rb, name)[:n] = values.numpy()
-    rb.size, rb.pos = n, state["buffer_pos"]
+        getattr(rb, name)[:kept] = np.roll(values.numpy(), -state["buffer_pos"], axis=0)[n - kept :]
+    rb.size, rb.pos = kept, kept % rb.capacity
+    if kept < n:
+        print(f"resume: --jirl.buffer-size {rb.capacity} keeps the newest {kept} of the {n} saved transitions")
     return state["counters"]
 
 

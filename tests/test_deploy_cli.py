@@ -166,3 +166,27 @@ def test_missing_hardware_is_a_one_line_error_before_the_car_is_armed(tmp_path, 
     assert out.returncode != 0 and message in out.stderr.strip().splitlines()[-1], out.stderr  # above it, pybullet's banner
     assert "Traceback" not in out.stderr, out.stderr
     assert not (tmp_path / "runs").exists()
+
+
+def test_resuming_into_another_buffer_size_keeps_the_newest_transitions_in_order(tmp_path):
+    hp = jetracer.car_jirl_defaults()
+    hp.hidden_size = 8
+    args = jetracer.Train(jirl=hp)
+    sac = jetracer.jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, hp)
+    rb = jetracer.jirl.ReplayBuffer(5, jetracer.OBS_SIZE, 2, seed=0)
+    obs = lambda i: np.full(jetracer.OBS_SIZE, float(i), dtype=np.float32)  # noqa: E731 (row i is marked by i)
+    for i in range(7):  # wraps: rows 5 and 6 overwrite 0 and 1, the next write goes to row 2
+        rb.add(obs(i), np.zeros(2), float(i), obs(i + 1), False)
+    path = str(tmp_path / "state.pt")
+    jetracer.save_training_state(path, sac, rb, {"step": 7}, args)
+    for capacity, newest in ((10, [2, 3, 4, 5, 6]), (5, [2, 3, 4, 5, 6]), (3, [4, 5, 6])):
+        loaded = jetracer.jirl.ReplayBuffer(capacity, jetracer.OBS_SIZE, 2, seed=0)
+        jetracer.load_training_state(path, jetracer.jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, hp), loaded)
+        assert loaded.size == len(newest) and loaded.pos == len(newest) % capacity
+        assert loaded.rewards[: loaded.size, 0].tolist() == newest  # oldest first
+        loaded.add(obs(7), np.zeros(2), 7.0, obs(8), False)  # the next write replaces the oldest once full
+        expected = newest + [7] if len(newest) < capacity else newest[1:] + [7]
+        assert sorted(loaded.rewards[: loaded.size, 0].tolist()) == expected
+    hp.hidden_size = 16
+    with pytest.raises(ValueError, match="holds an agent of 8 units, not --jirl.hidden-size 16"):
+        jetracer.load_training_state(path, jetracer.jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, hp), loaded)
