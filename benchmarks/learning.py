@@ -70,7 +70,8 @@ def main() -> None:
             "--eval-episodes", str(args.eval_episodes), "--exp-name", exp_name, *extra,
         ]  # fmt: skip
         start = time.perf_counter()
-        subprocess.run(cmd, check=True, cwd=args.workdir, stdout=subprocess.DEVNULL)
+        if subprocess.run(cmd, cwd=args.workdir, stdout=subprocess.DEVNULL).returncode != 0:  # its error is on stderr above
+            raise SystemExit(f"learning: error: seed {seed} failed; the rows above are the seeds that finished")
         wall = time.perf_counter() - start
         run_dir = max((args.workdir / "runs").glob(f"{args.env_id}__{exp_name}__{seed}__*"), key=lambda p: p.stat().st_mtime)
         row = summarise(read_scalars(run_dir)) | {"seed": seed, "wall_s": wall}

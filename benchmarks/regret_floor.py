@@ -81,6 +81,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.episodes < 1:
         parser.error("--episodes must be at least 1")
+    if args.budget_steps < 0:
+        parser.error("--budget-steps must be at least 0 (0: no floor column)")
     torch.set_num_threads(1)
     print("| checkpoint | return | baseline | behind the baseline | regret per episode | per step, per episode | floor over the budget (episode / per step) |")
     print("|---|---|---|---|---|---|---|")

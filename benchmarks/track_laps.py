@@ -64,6 +64,8 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=2)
     parser.add_argument("--seed-offset", type=int, default=1_000_000, help="episode i resets with this + i (the scripts' evaluation seeds)")
     args = parser.parse_args()
+    if args.episodes < 1:
+        parser.error("--episodes must be at least 1")
     torch.set_num_threads(1)
     base_laps, base_off = drive(get_baseline("JetRacerTrack-v0"), args.episodes, args.seed_offset)
     reference = statistics.median(base_laps) if base_laps else 0.0

@@ -1,4 +1,5 @@
-"""benchmarks/regret_floor.py: the paired regret of a fixed policy, against numbers computed here."""
+"""benchmarks/regret_floor.py: the paired regret of a fixed policy, against numbers computed here; and the
+benchmark tools refusing counts out of range."""
 
 import sys
 
@@ -94,8 +95,27 @@ def test_a_corrupt_checkpoint_is_reported_and_the_rest_still_run(tmp_path, monke
     assert per_step > 0.0
 
 
-def test_episodes_must_be_positive(monkeypatch, capsys):
-    monkeypatch.setattr(sys, "argv", ["regret_floor.py", "--episodes", "0", "x.cleanrl_model"])
+@pytest.mark.parametrize("option, message", [(["--episodes", "0"], "--episodes must be at least 1"),
+                                             (["--budget-steps", "-5"], "--budget-steps must be at least 0")])
+def test_counts_out_of_range_are_refused(monkeypatch, capsys, option, message):
+    monkeypatch.setattr(sys, "argv", ["regret_floor.py", *option, "x.cleanrl_model"])
     with pytest.raises(SystemExit):
         regret_floor.main()
+    assert message in capsys.readouterr().err
+
+
+def test_learning_stops_at_a_failed_seed_with_one_line(monkeypatch, tmp_path):
+    import learning
+
+    monkeypatch.setattr(sys, "argv", ["learning.py", "--seeds", "1", "--total-timesteps", "0", "--workdir", str(tmp_path)])
+    with pytest.raises(SystemExit, match="learning: error: seed 1 failed"):
+        learning.main()
+
+
+def test_track_laps_refuses_zero_episodes(monkeypatch, capsys):
+    import track_laps
+
+    monkeypatch.setattr(sys, "argv", ["track_laps.py", "--episodes", "0"])
+    with pytest.raises(SystemExit):
+        track_laps.main()
     assert "--episodes must be at least 1" in capsys.readouterr().err
