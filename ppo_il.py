@@ -326,14 +326,15 @@ class Agent(nn.Module):
 
 def collect_baseline_data(env: gym.Env, baseline: Callable, steps: int, seed: int, gamma: float) -> dict:
     """At least `steps` env steps of whole baseline episodes: observations, actions in policy units,
-    discounted returns-to-go, and the episodes' returns."""
+    discounted returns-to-go, the running discounted returns that --norm-reward scales by, and the
+    episodes' returns."""
     low, high = env.action_space.low, env.action_space.high
-    obs_list, action_list, return_list, episode_returns, episode = [], [], [], [], 0
+    obs_list, action_list, return_list, running_list, episode_returns, episode = [], [], [], [], [], 0
     while len(obs_list) < steps:
         if hasattr(baseline, "reset"):
             baseline.reset()
         obs, _ = env.reset(seed=seed + IL_SEED_OFFSET + episode)
-        rewards, done = [], False
+        rewards, done, discounted_return = [], False, 0.0
         while not done:
             action = baseline(obs)
             if action is None:
@@ -343,6 +344,8 @@ def collect_baseline_data(env: gym.Env, baseline: Callable, steps: int, seed: in
             action_list.append(to_policy_units(action, low, high))
             obs, reward, terminated, truncated, _ = env.step(action)
             rewards.append(float(reward))
+            discounted_return = discounted_return * gamma + rewards[-1]  # as --norm-reward accumulates it
+            running_list.append(discounted_return)
             done = terminated or truncated
         returns_to_go, running = np.zeros(len(rewards)), 0.0
         for t in reversed(range(len(rewards))):  # Monte Carlo; a truncated tail is cut short, not bootstrapped
@@ -355,6 +358,7 @@ def collect_baseline_data(env: gym.Env, baseline: Callable, steps: int, seed: in
         "obs": np.asarray(obs_list, dtype=np.float32),
         "actions": np.asarray(action_list, dtype=np.float32),
         "returns": np.asarray(return_list, dtype=np.float32),
+        "running_returns": np.asarray(running_list),
         "episode_returns": episode_returns,
     }
 
@@ -512,7 +516,12 @@ if __name__ == "__main__":
     if obs_rms is not None:
         obs_rms.update(data["obs"])
     il_obs = obs_rms.normalize(data["obs"]) if obs_rms is not None else data["obs"]
-    il = imitate(agent, il_obs, data["actions"], data["returns"], args, writer, rng)
+    return_rms, value_targets = RunningMeanStd(()), data["returns"]
+    if args.norm_reward:  # RL's reward scale starts from the baseline's steps, and the value is fitted in its units
+        return_rms.update(data["running_returns"])
+        value_targets = (value_targets / np.sqrt(return_rms.var + 1e-8)).astype(np.float32)
+        writer.add_scalar("il/reward_scale", float(np.sqrt(return_rms.var + 1e-8)), 0)
+    il = imitate(agent, il_obs, data["actions"], value_targets, args, writer, rng)
     writer.add_scalar("il/env_steps", len(data["obs"]), 0)
     print(f"imitation: {len(data['obs'])} baseline steps, {il['epochs']} epochs, held-out action MSE {il['action_mse']:.2e}")
 
@@ -547,7 +556,7 @@ if __name__ == "__main__":
     rewards = torch.zeros(args.num_steps)
     dones = torch.zeros(args.num_steps)
     values = torch.zeros(args.num_steps)
-    return_rms, discounted_return = RunningMeanStd(()), 0.0  # for --norm-reward
+    discounted_return = 0.0  # for --norm-reward
 
     # TRY NOT TO MODIFY: start the game
     global_step = 0
