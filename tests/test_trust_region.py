@@ -102,6 +102,11 @@ def test_imitation_clones_the_pendulum_baseline(script, tmp_path):
     args = script.resolve_hyperparameters(script.Args(il_steps=6000, il_max_epochs=150, il_init_std=0.3))
     data = script.collect_baseline_data(make_env("Pendulum-v1"), BASELINES["Pendulum-v1"], 6000, 0, args.gamma)
     assert len(data["obs"]) == 6000  # 30 whole episodes of 200 steps
+    rewards = data["running_returns"].reshape(30, 200).copy()  # what --norm-reward sees: G_t = gamma G_(t-1) + r_t
+    rewards[:, 1:] -= args.gamma * data["running_returns"].reshape(30, 200)[:, :-1]
+    for t in reversed(range(199)):  # the same rewards give the returns-to-go, summed the other way
+        rewards[:, t] += args.gamma * rewards[:, t + 1]
+    np.testing.assert_allclose(rewards.ravel(), data["returns"], rtol=1e-4, atol=1e-3)
     np.testing.assert_allclose(data["actions"], np.array([BASELINES["Pendulum-v1"](o) for o in data["obs"]]) / 2.0, atol=1e-6)
     torch.manual_seed(0)
     agent = script.Agent(3, 1, 64)
@@ -148,6 +153,42 @@ def test_end_to_end_logs_saves_and_evaluates(name, tmp_path):
     broken.write_bytes(model.read_bytes()[:100])
     with pytest.raises(ValueError, match="not a readable checkpoint"):
         script.evaluate(str(broken), "Pendulum-v1", 1, 1)
+
+
+@pytest.mark.parametrize("name", ["ppo_il", "trpo_il"])
+def test_norm_reward_fits_the_value_in_the_scaled_units(name, tmp_path):
+    """With --norm-reward the reward scale starts from the baseline's steps, and the cloned critic
+    predicts returns in those units, not in the env's (which would make RL's first advantages wrong)."""
+    from envs import BASELINES, make_env
+
+    norm_reward = ["--norm-reward"] if name == "ppo_il" else ["--norm-reward", "True"]  # trpo_il's is Optional (tuned)
+    args = [*SHORT[name], *norm_reward, "--total-timesteps", "256", "--il-steps", "2000", "--il-max-epochs", "5",
+            "--il-value-epochs", "100", "--save-model", "--eval-episodes", "1", "--baseline-eval-episodes", "1"]  # fmt: skip
+    out = run_script(ROOT / f"{name}.py", args, tmp_path)
+    assert out.returncode == 0, out.stderr
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    env, baseline, script = make_env("Pendulum-v1"), BASELINES["Pendulum-v1"], load_script(name)
+    obs_list, running, returns = [], [], []  # the imitation phase's 10 episodes, replayed here
+    for episode in range(10):
+        obs, _ = env.reset(seed=1 + script.IL_SEED_OFFSET + episode)
+        rewards, done = [], False
+        while not done:
+            obs_list.append(obs)
+            obs, reward, terminated, truncated, _ = env.step(baseline(obs))
+            rewards.append(reward)
+            running.append(0.9 * (running[-1] if len(rewards) > 1 else 0.0) + reward)  # Pendulum's gamma 0.9
+            done = terminated or truncated
+        returns += [sum(0.9**k * r for k, r in enumerate(rewards[t:])) for t in range(len(rewards))]
+    scale = np.std(running)
+    assert scalars(run_dir)["il/reward_scale"] == [pytest.approx(scale, rel=1e-3)]
+    cloned = script.load_checkpoint(str(next(run_dir.glob("*_cloned.cleanrl_model"))))
+    agent = script.Agent(3, 1, cloned["hidden_size"])
+    agent.load_state_dict(cloned["agent"])
+    with torch.no_grad():
+        predicted = agent.get_value(torch.tensor(np.array(obs_list), dtype=torch.float32))[:, 0].numpy()
+    target = np.array(returns) / scale
+    assert abs(predicted.mean() - target.mean()) < 0.1 * abs(np.mean(returns) - target.mean())
+    assert np.mean((predicted - target) ** 2) < 0.2 * np.var(target)
 
 
 @pytest.mark.parametrize("name", ["ppo_il", "trpo_il"])
