@@ -133,6 +133,10 @@ def open_camera(spec: str, world: Optional[SimWorld] = None):
     raise ValueError(f"unknown camera {spec!r}: use csi, usb:N, file:PATH or sim")
 
 
+class GamepadLost(Exception):
+    """The gamepad stopped answering (unplugged, or a wireless one out of range): its e-stop is gone."""
+
+
 class Gamepad:
     """A Linux joystick device (/dev/input/jsN) read without extra dependencies.
 
@@ -147,15 +151,19 @@ class Gamepad:
             self.fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
         except OSError as err:
             raise ValueError(f"cannot open gamepad {path!r}: {err.strerror}") from None
+        self.path = path
         self.axes: dict = {}
         self.buttons: dict = {}
 
     def poll(self) -> None:
+        """Read every pending event; GamepadLost if the device is gone (the kernel answers ENODEV)."""
         while True:
             try:
                 data = os.read(self.fd, self.EVENT.size * 64)
             except BlockingIOError:
                 return
+            except OSError as err:
+                raise GamepadLost(f"gamepad {self.path!r} lost ({err.strerror})") from None
             if not data:
                 return
             for offset in range(0, len(data) - len(data) % self.EVENT.size, self.EVENT.size):
@@ -167,4 +175,7 @@ class Gamepad:
                     self.axes[number] = value / 32767.0
 
     def close(self) -> None:
-        os.close(self.fd)
+        try:
+            os.close(self.fd)
+        except OSError:  # already gone with the device
+            pass

@@ -8,8 +8,8 @@ The car is reached through the serial protocol of docs/serial_protocol.md (`depl
 `--port mockjetracer:// --camera sim` (the defaults) a mock controller drives the PyBullet track car,
 so every mode runs headless through the real protocol (sim-in-the-loop). Safety on the host: steering
 clamped and rate-limited, throttle held in its window, a NaN action sends STOP, a frame older than
-two control periods stops the car and ends the episode, e-stop on the gamepad button and on
-Ctrl-C/SIGTERM; the controller's own watchdog stops the car if this process dies.
+two control periods stops the car and ends the episode, e-stop on the gamepad button, on losing
+the gamepad and on Ctrl-C/SIGTERM; the controller's own watchdog stops the car if this process dies.
 Runs on the car's Python 3.8 (JetPack 5) and newer.
 """
 
@@ -32,7 +32,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the JIRL script and envs/
 
 import jirl_sac_continuous as jirl  # noqa: E402
-from deploy.io import Gamepad, SimWorld, open_camera  # noqa: E402
+from deploy.io import Gamepad, GamepadLost, SimWorld, open_camera  # noqa: E402
 from deploy.link import HostLink  # noqa: E402
 from envs.car_interface import OBS_SIZE, ActionMapping, action_to_commands, preprocess  # noqa: E402
 from envs.lane_follower import LaneFollower  # noqa: E402
@@ -178,7 +178,7 @@ class CarSession:
     def __init__(self, args: Common, mode: str) -> None:
         from torch.utils.tensorboard import SummaryWriter
 
-        self.args, self.period = args, 1.0 / args.control_hz
+        self.args, self.mode, self.period = args, mode, 1.0 / args.control_hz
         self.stop_requested = False
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
@@ -230,7 +230,13 @@ class CarSession:
         """The gamepad's e-stop and takeover: an action while a human steers, else None."""
         if self.gamepad is None:
             return None
-        self.gamepad.poll()
+        try:
+            self.gamepad.poll()
+        except GamepadLost as err:  # without its e-stop the car must not drive: stop it and end the run
+            self.link.estop()
+            self.stop_requested = True
+            print(f"{self.mode}: {err}; e-stopped", file=sys.stderr)
+            return None
         if self.gamepad.buttons.get(self.args.estop_button):
             self.link.estop()
             self.stop_requested = True

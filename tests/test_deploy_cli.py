@@ -126,6 +126,60 @@ def test_gamepad_events_estop_and_takeover(tmp_path):
     os.close(writer_fd)
 
 
+def test_a_lost_gamepad_is_reported_once_and_closes_quietly(tmp_path, monkeypatch):
+    import errno
+    import os
+
+    from deploy import io
+
+    path = str(tmp_path / "js0")
+    os.mkfifo(path)
+    pad = io.Gamepad(path)
+
+    def unplugged(fd, size):
+        raise OSError(errno.ENODEV, os.strerror(errno.ENODEV))
+
+    monkeypatch.setattr(io.os, "read", unplugged)
+    with pytest.raises(io.GamepadLost, match=f"gamepad '{path}' lost \\(No such device\\)"):
+        pad.poll()
+    monkeypatch.undo()
+    pad.close()
+    pad.close()  # the fd is gone already: no error
+
+
+def test_training_e_stops_and_keeps_its_state_when_the_gamepad_is_lost(tmp_path, monkeypatch, capsys):
+    import os
+
+    from deploy import io
+
+    path = str(tmp_path / "js0")
+    os.mkfifo(path)
+    polls, estops = [], []
+    real_estop = jetracer.HostLink.estop
+
+    def poll(self):
+        polls.append(len(estops))
+        if len(polls) > 60:  # unplugged after 60 control periods
+            raise io.GamepadLost(f"gamepad {self.path!r} lost (No such device)")
+
+    def estop(self):
+        estops.append(len(polls))
+        real_estop(self)
+
+    monkeypatch.setattr(io.Gamepad, "poll", poll)
+    monkeypatch.setattr(jetracer.HostLink, "estop", estop)
+    state = tmp_path / "train.pt"
+    args = ["train", "--total-steps", "500", "--gamepad", path, "--train-every", "40", "--gradient-steps", "2",
+            "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST]  # fmt: skip
+    jetracer.main(args)
+    assert estops[0] == 61  # e-stopped on the poll that found the gamepad gone, before close()
+    assert len(polls) == 61  # and no control period after it
+    import torch
+
+    assert torch.load(state, weights_only=True)["counters"]["step"] == 61  # saved on the way out, nothing lost
+    assert f"train: gamepad '{path}' lost (No such device); e-stopped" in capsys.readouterr().err
+
+
 def test_sigterm_stops_a_drive_cleanly(tmp_path):
     import signal
     import time
