@@ -10,6 +10,7 @@ so every mode runs headless through the real protocol (sim-in-the-loop). Safety 
 clamped and rate-limited, throttle held in its window, a NaN action sends STOP, a frame older than
 two control periods stops the car and ends the episode, e-stop on the gamepad button, on losing
 the gamepad and on Ctrl-C/SIGTERM; the controller's own watchdog stops the car if this process dies.
+A controller that is no longer armed ends the run (`train` saves first); only a person re-arms it.
 Runs on the car's Python 3.8 (JetPack 5) and newer.
 """
 
@@ -33,6 +34,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__)))) 
 
 import jirl_sac_continuous as jirl  # noqa: E402
 from deploy.io import Gamepad, GamepadLost, SimWorld, open_camera  # noqa: E402
+from deploy import protocol as p  # noqa: E402
 from deploy.link import HostLink  # noqa: E402
 from envs.car_interface import OBS_SIZE, ActionMapping, action_to_commands, preprocess  # noqa: E402
 from envs.lane_follower import LaneFollower  # noqa: E402
@@ -246,6 +248,12 @@ class CarSession:
         return None
 
     def act(self, action: np.ndarray) -> Optional[Tuple[float, float]]:
+        """Send `action` through the safety filter; the commands sent, or None (STOP, or the run is over)."""
+        if not self.link.armed:  # the car no longer drives, and only a person re-arms it: end the run here
+            if not self.stop_requested:
+                self.stop_requested = True
+                print(f"{self.mode}: error: the controller is no longer armed ({self.disarm_reason()}); stopping", file=sys.stderr)
+            return None
         commands = self.safety(action)
         if commands is None:
             self.link.stop()
@@ -253,6 +261,19 @@ class CarSession:
             self.link.drive(*commands)
             self.previous_action = np.clip(np.asarray(action, dtype=np.float32), -1.0, 1.0)
         return commands
+
+    def disarm_reason(self) -> str:
+        telemetry = self.link.telemetry
+        if self.link.reconnects:
+            return f"the link was lost and reopened {self.link.reconnects} time(s)"
+        if telemetry is not None and telemetry.watchdog_tripped:
+            return "its watchdog tripped: no command reached it in time"
+        if telemetry is not None and telemetry.estop_latched:
+            return "its e-stop is latched"
+        refused = [m for m in self.link.nacks if m.fields[2] in (p.NOT_ARMED, p.ESTOP_LATCHED)]
+        if refused:
+            return f"it refused a command as {p.REASONS[refused[-1].fields[2]]}; did it restart?"
+        return "it disarmed"
 
     def wait(self) -> None:
         """Hold the control rate; record the achieved period."""
@@ -317,6 +338,8 @@ def drive(session: CarSession, policy: Callable[[np.ndarray], np.ndarray], steps
         if obs is not None:
             action = session.human_action()
             commands = session.act(policy(obs) if action is None else action)
+            if session.stop_requested:  # e-stopped or disarmed in this period: the car did not take the action
+                break
             off_track = session.world is not None and session.world.off_track
             rewards.append(car_reward(commands[1] if commands else 0.0, off_track, session.mapping))
         if step % 100 == 0:
@@ -513,6 +536,8 @@ def train(args: Train) -> dict:
             rl_control.append(rl_acts)
             action = rl_action if rl_acts else np.asarray(baseline_action, dtype=np.float32)
             commands = session.act(action)
+            if session.stop_requested:  # e-stopped or disarmed in this period: the car did not take the action
+                break
             previous = (obs, action, rl_action, rl_acts, commands[1] if commands else 0.0, None if rl_acts else baseline_action)
 
             if shadow is not None:  # the baseline's own step from the same start, paired by index

@@ -174,6 +174,13 @@ class HostLink:
         self._armed = bool(status & p.STATUS_ARMED)
         return self._armed
 
+    @property
+    def armed(self) -> bool:
+        """Whether the host believes the controller armed: False after an e-stop, a reconnect, telemetry
+        saying otherwise (a tripped watchdog, a latched e-stop) or a DRIVE refused as not armed or
+        e-stopped (a controller that restarted); only arm() sets it again."""
+        return self._armed
+
     def drive(self, steering: float, throttle: float) -> None:
         """Set the command the send loop will send while it is fresh."""
         self._command = (float(steering), float(throttle), self._clock())
@@ -238,6 +245,8 @@ class HostLink:
                 self.info = message
             elif message.type == p.NACK:
                 self.nacks.append(message)
+                if message.fields[2] in (p.NOT_ARMED, p.ESTOP_LATCHED):  # e.g. a controller that restarted, unarmed
+                    self._armed = False
             self._reply.notify_all()
 
     def round_trip_stats(self) -> Dict[str, float]:

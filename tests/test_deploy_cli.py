@@ -176,8 +176,45 @@ def test_training_e_stops_and_keeps_its_state_when_the_gamepad_is_lost(tmp_path,
     assert len(polls) == 61  # and no control period after it
     import torch
 
-    assert torch.load(state, weights_only=True)["counters"]["step"] == 61  # saved on the way out, nothing lost
+    assert torch.load(state, weights_only=True)["counters"]["step"] == 60  # saved on the way out, nothing lost
     assert f"train: gamepad '{path}' lost (No such device); e-stopped" in capsys.readouterr().err
+
+
+def test_training_ends_and_keeps_its_state_when_the_watchdog_trips(tmp_path, monkeypatch, capsys):
+    import time
+
+    waits, real_wait = [], jetracer.CarSession.wait
+
+    def wait(self):
+        waits.append(1)
+        if len(waits) == 50:  # a host stall longer than the watchdog: the controller disarms itself
+            self.link._port.controller.poll(time.monotonic() + 10.0)
+        real_wait(self)
+
+    monkeypatch.setattr(jetracer.CarSession, "wait", wait)
+    state = tmp_path / "train.pt"
+    jetracer.main(["train", "--total-steps", "500", "--train-every", "40", "--gradient-steps", "2",
+                   "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST])  # fmt: skip
+    import torch
+
+    assert 50 <= torch.load(state, weights_only=True)["counters"]["step"] <= 52  # stopped within a period or two, saved
+    err = capsys.readouterr().err
+    assert "train: error: the controller is no longer armed (its watchdog tripped" in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_drive_ends_when_the_controller_restarts_unarmed(tmp_path, monkeypatch, capsys):
+    waits, real_wait = [], jetracer.CarSession.wait
+
+    def wait(self):
+        waits.append(1)
+        if len(waits) == 30:  # a brown-out restart: the controller comes back unarmed and says nothing
+            self.link._port.controller.armed = False
+        real_wait(self)
+
+    monkeypatch.setattr(jetracer.CarSession, "wait", wait)
+    rewards = jetracer.baseline(jetracer.Baseline(steps=300, log_dir=str(tmp_path)))
+    assert 30 <= len(rewards) <= 32  # no reward is counted for periods the car did not drive
+    assert "baseline: error: the controller is no longer armed (it refused a command as not armed; did it restart?)" in capsys.readouterr().err
 
 
 def test_sigterm_stops_a_drive_cleanly(tmp_path):

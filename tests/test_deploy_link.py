@@ -172,6 +172,21 @@ def test_link_estop_is_immediate_and_close_sends_stop_then_estop(mock_link):
     assert controller.log[-1][1] == "e-stop" and not controller.armed
 
 
+def test_a_refused_drive_tells_the_link_that_the_controller_restarted(mock_link):
+    controller = mock_link._port.controller
+    assert mock_link.arm() and mock_link.armed
+    mock_link.drive(0.0, 0.5)
+    assert wait_until(lambda: controller.throttle == 0.5)
+    controller.armed, controller.throttle = False, 0.0  # a brown-out restart: unarmed, and no telemetry says so
+    assert wait_until(lambda: not mock_link.armed)  # the next DRIVE was refused
+    assert mock_link.nacks[-1].fields == (mock_link.nacks[-1].fields[0], p.DRIVE, p.NOT_ARMED)
+    refused = len(mock_link.nacks)
+    mock_link.drive(0.0, 0.5)
+    time.sleep(0.1)
+    assert len(mock_link.nacks) == refused, "no DRIVE is sent to a controller believed unarmed"
+    assert mock_link.arm() and mock_link.armed
+
+
 def test_pty_link_survives_an_unplug_and_never_rearms_itself():
     pty = PtyController()
     link = HostLink(pty.path, send_hz=100, command_timeout=0.05, backoff=(0.02, 0.1)).start()
