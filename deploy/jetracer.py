@@ -8,9 +8,10 @@ The car is reached through the serial protocol of docs/serial_protocol.md (`depl
 `--port mockjetracer:// --camera sim` (the defaults) a mock controller drives the PyBullet track car,
 so every mode runs headless through the real protocol (sim-in-the-loop). Safety on the host: steering
 clamped and rate-limited, throttle held in its window, a NaN action sends STOP, a frame older than
-two control periods stops the car and ends the episode, e-stop on the gamepad button, on losing
-the gamepad and on Ctrl-C/SIGTERM; the controller's own watchdog stops the car if this process dies.
-A controller that is no longer armed ends the run (`train` saves first); only a person re-arms it.
+two control periods stops the car and ends the episode, e-stop on the gamepad button, on losing the
+gamepad and on Ctrl-C/SIGTERM; the controller's own watchdog stops the car if this process dies.
+The run ends (`train` saves first) after 2 s without a fresh frame, or when the controller is no
+longer armed: only a person re-arms it.
 Runs on the car's Python 3.8 (JetPack 5) and newer.
 """
 
@@ -41,6 +42,7 @@ from envs.lane_follower import LaneFollower  # noqa: E402
 
 TRAIN_STATE_FORMAT = "jirl-car-training-v2"  # v2: the agent's twin critics as one ensemble
 SENDS_PER_PERIOD = 2.5  # the link sends this many frames per control period (DRIVE or STOP, feeding the watchdog)
+CAMERA_LOST_S = 2.0  # stale frames for this long end the run: the camera is gone (or a recorded video ended)
 
 
 @dataclass
@@ -201,6 +203,7 @@ class CarSession:
             raise SystemExit(f"{mode}: error: {err}") from None
         self.previous_action = np.array([0.0, -1.0], dtype=np.float32)
         self.frames_dropped = 0
+        self.stale_periods = 0  # control periods in a row without a fresh frame (periods, not time: a training pause is not a gap)
         self.laps_logged = 0
         self.periods: deque = deque(maxlen=2000)
         self._last_tick = time.monotonic()
@@ -224,8 +227,13 @@ class CarSession:
         frame, captured = self.camera.read()
         if frame is None or time.monotonic() - captured > 2.0 * self.period:
             self.frames_dropped += 1
+            self.stale_periods += 1
             self.link.stop()
+            if self.stale_periods * self.period >= CAMERA_LOST_S and not self.stop_requested:  # a dead camera, or a video's end
+                self.stop_requested = True
+                print(f"{self.mode}: error: no fresh camera frame for {self.stale_periods} periods ({CAMERA_LOST_S:.0f} s); stopping", file=sys.stderr)
             return None
+        self.stale_periods = 0
         return preprocess(frame, self.previous_action)
 
     def human_action(self) -> Optional[np.ndarray]:

@@ -217,6 +217,32 @@ def test_a_drive_ends_when_the_controller_restarts_unarmed(tmp_path, monkeypatch
     assert "baseline: error: the controller is no longer armed (it refused a command as not armed; did it restart?)" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("mode", ["baseline", "train"])
+def test_a_camera_that_stops_delivering_ends_the_run(mode, tmp_path, monkeypatch, capsys):
+    from deploy import io
+
+    reads, real_read = [], io.SimWorld.read
+
+    def read(self):
+        frame, captured = real_read(self)
+        if isinstance(self.controller, jetracer._NullController):  # train's shadow car, driven by the baseline
+            return frame, captured
+        reads.append(1)
+        return (frame, captured) if len(reads) <= 30 else (frame, captured - 1.0)  # frozen after 30 periods
+
+    monkeypatch.setattr(io.SimWorld, "read", read)
+    state = tmp_path / "train.pt"
+    if mode == "baseline":
+        assert len(jetracer.baseline(jetracer.Baseline(steps=300, log_dir=str(tmp_path)))) == 30
+    else:  # before, training waited for a fresh frame for ever, the car stopped
+        jetracer.main(["train", "--total-steps", "500", "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST])
+        import torch
+
+        assert torch.load(state, weights_only=True)["counters"]["step"] == 30  # saved on the way out
+    assert len(reads) == 30 + 40  # 2 s of stale frames at 20 Hz, then the run ends
+    assert f"{mode}: error: no fresh camera frame for 40 periods (2 s); stopping" in capsys.readouterr().err
+
+
 def test_sigterm_stops_a_drive_cleanly(tmp_path):
     import signal
     import time
