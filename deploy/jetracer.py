@@ -506,6 +506,7 @@ def train(args: Train) -> dict:
             next_obs = session.observe()
             if next_obs is None:  # stale frame: the car is stopped; the episode ends here
                 previous, obs = None, None
+                follower.reset()
                 gate.new_episode()
                 session.wait()
                 continue

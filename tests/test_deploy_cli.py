@@ -243,6 +243,24 @@ def test_a_camera_that_stops_delivering_ends_the_run(mode, tmp_path, monkeypatch
     assert f"{mode}: error: no fresh camera frame for 40 periods (2 s); stopping" in capsys.readouterr().err
 
 
+def test_a_stale_frame_ends_the_training_episode_for_the_baseline_too(tmp_path, monkeypatch):
+    from deploy import io
+
+    reads, resets, real_read = [], [], io.SimWorld.read
+
+    def read(self):
+        frame, captured = real_read(self)
+        if isinstance(self.controller, jetracer._NullController):  # train's shadow car
+            return frame, captured
+        reads.append(1)
+        return (frame, captured - 1.0) if 21 <= len(reads) <= 23 else (frame, captured)  # three stale periods
+
+    monkeypatch.setattr(io.SimWorld, "read", read)
+    monkeypatch.setattr(jetracer.LaneFollower, "reset", lambda self: resets.append(1) or setattr(self, "previous_error", None))
+    jetracer.main(["train", "--total-steps", "60", "--checkpoint", str(tmp_path / "t.pt"), "--log-dir", str(tmp_path), *FAST])
+    assert len(resets) == 3  # its steering derivative does not span the gap (the car never left the lane here)
+
+
 def test_sigterm_stops_a_drive_cleanly(tmp_path):
     import signal
     import time
