@@ -160,6 +160,8 @@ def make_env(env_id: str, seed: int, capture_video: bool = False, run_name: str 
     else:
         try:
             env = gym.make(env_id, render_mode=render_mode)
+        except gym.error.DependencyNotInstalled as err:  # a known id whose simulator is missing
+            raise ValueError(f"env id {env_id!r} needs a package that is not installed: {err}") from None
         except gym.error.Error as err:
             raise ValueError(f"unknown env id {env_id!r}: {err}") from None
         env.action_space.seed(seed)

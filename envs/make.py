@@ -18,7 +18,10 @@ if "JetRacerTrack-v0" not in gym.registry:
 def _register_lazily(env_id: str) -> None:
     for marker, module in _LAZY_REGISTRATIONS.items():
         if marker in env_id and env_id not in gym.registry:
-            __import__(module)
+            try:
+                __import__(module)
+            except ImportError as err:
+                raise ValueError(f"env id {env_id!r} needs {module}, which does not import: {err}") from None
 
 
 def make_env(env_id: str, seed: int | None = None, render_mode: str | None = None, **kwargs) -> gym.Env:
@@ -32,6 +35,8 @@ def make_env(env_id: str, seed: int | None = None, render_mode: str | None = Non
     _register_lazily(env_id)
     try:
         env = gym.make(env_id, render_mode=render_mode, **kwargs)
+    except gym.error.DependencyNotInstalled as err:  # a known id whose simulator is missing
+        raise ValueError(f"env id {env_id!r} needs a package that is not installed: {err}") from None
     except gym.error.Error as err:
         raise ValueError(f"unknown env id {env_id!r}: {err}") from None
     if seed is not None:

@@ -8,7 +8,7 @@ import pytest
 
 from envs import BASELINES, EXPERTS, get_baseline, load_baseline, make_env, rollout
 
-from conftest import ROOT
+from conftest import ROOT, load_script
 
 
 @pytest.mark.parametrize("env_id", sorted(BASELINES))
@@ -88,6 +88,23 @@ def test_make_env_errors_and_lazy_pybullet_registration():
     walker.close()
 
 
+def test_make_env_names_a_missing_package_not_an_unknown_id(monkeypatch):
+    import gymnasium as gym
+
+    from envs import make
+
+    monkeypatch.setitem(make._LAZY_REGISTRATIONS, "FakeBulletEnv-v", "no_such_module_xyz")
+    with pytest.raises(ValueError, match="'FakeBulletEnv-v0' needs no_such_module_xyz, which does not import"):
+        make_env("FakeBulletEnv-v0")
+
+    def without_mujoco(env_id, **kwargs):
+        raise gym.error.DependencyNotInstalled('MuJoCo is not installed, run `pip install "gymnasium[mujoco]"`')
+
+    monkeypatch.setattr(make.gym, "make", without_mujoco)
+    with pytest.raises(ValueError, match="'HalfCheetah-v5' needs a package that is not installed: MuJoCo is not installed"):
+        make_env("HalfCheetah-v5")
+
+
 def test_cli_prints_the_baseline_figures():
     out = subprocess.run(
         [sys.executable, "-m", "envs.baselines", "--env-id", "Pendulum-v1", "--episodes", "2"],
@@ -99,3 +116,22 @@ def test_cli_prints_the_baseline_figures():
         [sys.executable, "-m", "envs.baselines", "--env-id", "CartPole-v1"], cwd=ROOT, capture_output=True, text=True
     )
     assert bad.returncode == 2 and "no baseline for 'CartPole-v1'" in bad.stderr
+
+
+@pytest.mark.parametrize("script", ["sac_continuous", "jirl_sac_continuous", "ppo_il", "trpo_il"])
+def test_a_script_copied_alone_names_a_missing_package_too(script, monkeypatch):
+    import gymnasium as gym
+
+    module = load_script(script)
+    monkeypatch.setattr(module, "project_make_env", None)  # as if envs/ were not beside it
+
+    def without_mujoco(env_id, **kwargs):
+        raise gym.error.DependencyNotInstalled("MuJoCo is not installed")
+
+    monkeypatch.setattr(module.gym, "make", without_mujoco)
+    with pytest.raises(ValueError, match="'HalfCheetah-v5' needs a package that is not installed: MuJoCo"):
+        module.make_env("HalfCheetah-v5", 0)
+    monkeypatch.undo()
+    monkeypatch.setattr(module, "project_make_env", None)
+    with pytest.raises(ValueError, match="unknown env id 'NoSuchEnv-v9'"):
+        module.make_env("NoSuchEnv-v9", 0)
