@@ -173,8 +173,8 @@ def make_env(env_id: str, seed: int, capture_video: bool = False, run_name: str 
         except gym.error.Error as err:
             raise ValueError(f"unknown env id {env_id!r}: {err}") from None
         env.action_space.seed(seed)
-    if not isinstance(env.action_space, gym.spaces.Box):
-        raise ValueError(f"{env_id} has a {env.action_space} action space; this script needs a continuous (Box) one")
+    if not isinstance(env.action_space, gym.spaces.Box) or len(env.action_space.shape) != 1:
+        raise ValueError(f"{env_id} has a {env.action_space} action space; this script needs a flat continuous (Box) one")
     if not np.all(np.isfinite(env.action_space.low) & np.isfinite(env.action_space.high)):
         raise ValueError(f"{env_id} has an unbounded action space {env.action_space}; actions are scaled into bounds")
     if not isinstance(env.observation_space, gym.spaces.Box) or len(env.observation_space.shape) != 1:

@@ -135,3 +135,20 @@ def test_a_script_copied_alone_names_a_missing_package_too(script, monkeypatch):
     monkeypatch.setattr(module, "project_make_env", None)
     with pytest.raises(ValueError, match="unknown env id 'NoSuchEnv-v9'"):
         module.make_env("NoSuchEnv-v9", 0)
+
+
+@pytest.mark.parametrize("script", ["sac_continuous", "jirl_sac_continuous", "ppo_il", "trpo_il"])
+def test_a_matrix_action_space_is_refused(script):
+    import gymnasium as gym
+
+    class MatrixActions(gym.Env):  # a Box action of shape (2, 3): the networks' act_dim would be 2, the env wants 6
+        observation_space = gym.spaces.Box(-1.0, 1.0, shape=(4,))
+        action_space = gym.spaces.Box(-1.0, 1.0, shape=(2, 3))
+
+        def __init__(self, render_mode=None):
+            self.render_mode = render_mode
+
+    if "MatrixActions-v0" not in gym.registry:
+        gym.register("MatrixActions-v0", entry_point=MatrixActions)
+    with pytest.raises(ValueError, match=r"has a Box\(-1.0, 1.0, \(2, 3\), float32\) action space; this script needs a flat continuous"):
+        load_script(script).make_env("MatrixActions-v0", 0)
