@@ -486,6 +486,10 @@ def train(args: Train) -> dict:
     last_pause = counters["step"]
     try:
         while counters["step"] < args.total_steps and not session.stop_requested:
+            if "learner_error" in counters:  # the background learner failed: stop the car and end the run
+                session.link.stop()
+                print(f"train: error: the background learner failed ({counters.pop('learner_error')}); stopping", file=sys.stderr)
+                break
             step = counters["step"]
             if step % args.train_every == 0 and step != last_pause:
                 last_pause = step
@@ -581,13 +585,18 @@ def train(args: Train) -> dict:
 
 
 def background_learner(sac, rb, counters: dict, args: Train, lock: threading.Lock, finished: threading.Event) -> None:
-    """Gradient steps while the car drives, keeping gradient_steps / train_every of them per env step."""
+    """Gradient steps while the car drives, keeping gradient_steps / train_every of them per env step.
+    An update that raises ends the learner with the error in counters["learner_error"]; the loop then stops."""
     hp = args.jirl
     while not finished.is_set():
         with lock:
             ready = rb.size >= max(hp.learning_starts, hp.batch_size) and counters["updates"] < counters["step"] * args.gradient_steps / args.train_every
             if ready:
-                sac.update(rb.sample(hp.batch_size), counters["updates"])
+                try:
+                    sac.update(rb.sample(hp.batch_size), counters["updates"])
+                except Exception as err:  # noqa: BLE001 -- any failure: the car must not drive on without its learner
+                    counters["learner_error"] = f"{type(err).__name__}: {err}"
+                    return
                 counters["updates"] += 1
         if not ready:
             time.sleep(0.002)

@@ -261,6 +261,27 @@ def test_a_stale_frame_ends_the_training_episode_for_the_baseline_too(tmp_path, 
     assert len(resets) == 3  # its steering derivative does not span the gap (the car never left the lane here)
 
 
+def test_a_failing_background_learner_stops_the_car_and_keeps_the_state(tmp_path, monkeypatch, capsys):
+    updates, real_update = [], jetracer.jirl.SoftActorCritic.update
+
+    def update(self, data, step):
+        updates.append(step)
+        if len(updates) > 5:
+            raise RuntimeError("out of memory")
+        return real_update(self, data, step)
+
+    monkeypatch.setattr(jetracer.jirl.SoftActorCritic, "update", update)
+    state = tmp_path / "train.pt"
+    jetracer.main(["train", "--total-steps", "1000", "--learner", "background", "--train-every", "10", "--gradient-steps", "5",
+                   "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST])  # fmt: skip
+    import torch
+
+    counters = torch.load(state, weights_only=True)["counters"]
+    assert counters["updates"] == 5 and counters["step"] < 100  # ended soon after, not at 1000 steps without a learner
+    assert "learner_error" not in counters  # a resume starts clean
+    assert "train: error: the background learner failed (RuntimeError: out of memory); stopping" in capsys.readouterr().err
+
+
 def test_sigterm_stops_a_drive_cleanly(tmp_path):
     import signal
     import time
