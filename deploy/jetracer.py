@@ -34,8 +34,8 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the JIRL script and envs/
 
 import jirl_sac_continuous as jirl  # noqa: E402
-from deploy.io import Gamepad, GamepadLost, SimWorld, open_camera  # noqa: E402
 from deploy import protocol as p  # noqa: E402
+from deploy.io import Gamepad, GamepadLost, SimWorld, open_camera  # noqa: E402
 from deploy.link import HostLink  # noqa: E402
 from envs.car_interface import OBS_SIZE, ActionMapping, action_to_commands, preprocess  # noqa: E402
 from envs.lane_follower import LaneFollower  # noqa: E402
@@ -245,7 +245,7 @@ class CarSession:
         except GamepadLost as err:  # without its e-stop the car must not drive: stop it and end the run
             self.link.estop()
             self.stop_requested = True
-            print(f"{self.mode}: {err}; e-stopped", file=sys.stderr)
+            print(f"{self.mode}: error: {err}; e-stopped", file=sys.stderr)
             return None
         if self.gamepad.buttons.get(self.args.estop_button):
             self.link.estop()
@@ -271,6 +271,7 @@ class CarSession:
         return commands
 
     def disarm_reason(self) -> str:
+        """Why the controller is no longer armed, as far as the link can tell."""
         telemetry = self.link.telemetry
         if self.link.reconnects:
             return f"the link was lost and reopened {self.link.reconnects} time(s)"

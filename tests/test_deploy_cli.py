@@ -177,7 +177,7 @@ def test_training_e_stops_and_keeps_its_state_when_the_gamepad_is_lost(tmp_path,
     import torch
 
     assert torch.load(state, weights_only=True)["counters"]["step"] == 60  # saved on the way out, nothing lost
-    assert f"train: gamepad '{path}' lost (No such device); e-stopped" in capsys.readouterr().err
+    assert f"train: error: gamepad '{path}' lost (No such device); e-stopped" in capsys.readouterr().err
 
 
 def test_training_ends_and_keeps_its_state_when_the_watchdog_trips(tmp_path, monkeypatch, capsys):
