@@ -3,6 +3,7 @@
 import subprocess
 import sys
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import pytest
@@ -217,20 +218,27 @@ def test_a_drive_ends_when_the_controller_restarts_unarmed(tmp_path, monkeypatch
     assert "baseline: error: the controller is no longer armed (it refused a command as not armed; did it restart?)" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("mode", ["baseline", "train"])
-def test_a_camera_that_stops_delivering_ends_the_run(mode, tmp_path, monkeypatch, capsys):
+def stale_camera(monkeypatch, stale: Callable[[int], bool]) -> list:
+    """Make the car's simulated camera serve stale frames on the reads (counted from 1) where stale(n)
+    holds; train's shadow car, driven by the baseline, keeps fresh ones. Returns the list of reads."""
     from deploy import io
 
     reads, real_read = [], io.SimWorld.read
 
     def read(self):
         frame, captured = real_read(self)
-        if isinstance(self.controller, jetracer._NullController):  # train's shadow car, driven by the baseline
+        if isinstance(self.controller, jetracer._NullController):
             return frame, captured
         reads.append(1)
-        return (frame, captured) if len(reads) <= 30 else (frame, captured - 1.0)  # frozen after 30 periods
+        return (frame, captured - 1.0) if stale(len(reads)) else (frame, captured)
 
     monkeypatch.setattr(io.SimWorld, "read", read)
+    return reads
+
+
+@pytest.mark.parametrize("mode", ["baseline", "train"])
+def test_a_camera_that_stops_delivering_ends_the_run(mode, tmp_path, monkeypatch, capsys):
+    reads = stale_camera(monkeypatch, lambda n: n > 30)  # frozen after 30 periods
     state = tmp_path / "train.pt"
     if mode == "baseline":
         assert len(jetracer.baseline(jetracer.Baseline(steps=300, log_dir=str(tmp_path)))) == 30
@@ -244,18 +252,8 @@ def test_a_camera_that_stops_delivering_ends_the_run(mode, tmp_path, monkeypatch
 
 
 def test_a_stale_frame_ends_the_training_episode_for_the_baseline_too(tmp_path, monkeypatch):
-    from deploy import io
-
-    reads, resets, real_read = [], [], io.SimWorld.read
-
-    def read(self):
-        frame, captured = real_read(self)
-        if isinstance(self.controller, jetracer._NullController):  # train's shadow car
-            return frame, captured
-        reads.append(1)
-        return (frame, captured - 1.0) if 21 <= len(reads) <= 23 else (frame, captured)  # three stale periods
-
-    monkeypatch.setattr(io.SimWorld, "read", read)
+    stale_camera(monkeypatch, lambda n: 21 <= n <= 23)  # three stale periods
+    resets = []
     monkeypatch.setattr(jetracer.LaneFollower, "reset", lambda self: resets.append(1) or setattr(self, "previous_error", None))
     jetracer.main(["train", "--total-steps", "60", "--checkpoint", str(tmp_path / "t.pt"), "--log-dir", str(tmp_path), *FAST])
     assert len(resets) == 3  # its steering derivative does not span the gap (the car never left the lane here)
