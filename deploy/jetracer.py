@@ -465,7 +465,16 @@ def train(args: Train) -> dict:
         except (ValueError, FileNotFoundError) as err:
             raise SystemExit(f"train: error: {err}")
         print(f"resumed at step {counters['step']} with {rb.size} transitions")
+    elif os.path.exists(args.checkpoint):  # a fresh run would overwrite it at its first pause
+        raise SystemExit(f"train: error: {args.checkpoint} holds an earlier training; pass --resume to continue it, or another --checkpoint")
 
+    def checkpoint() -> None:
+        try:
+            save_training_state(args.checkpoint, sac, rb, counters, args)
+        except OSError as err:  # disk full, no permission: the run ends (the car stops in `finally`), saying why
+            raise SystemExit(f"train: error: cannot write --checkpoint {args.checkpoint}: {err}") from None
+
+    checkpoint()  # before the car is armed: a checkpoint that cannot be written fails now, not at the first pause
     session = CarSession(args, "train")
     follower = LaneFollower()
     gate = jirl.Gate(hp.gate_k)
@@ -505,7 +514,7 @@ def train(args: Train) -> dict:
                                 session.writer.add_scalar(f"losses/{name}", value.item(), step)
                     else:
                         acting.load_state_dict(sac.actor.state_dict())
-                    save_training_state(args.checkpoint, sac, rb, counters, args)
+                    checkpoint()
                 session._next_tick = time.monotonic()
 
             next_obs = session.observe()
@@ -574,7 +583,7 @@ def train(args: Train) -> dict:
         finished.set()
         if learner is not None:
             learner.join()
-        save_training_state(args.checkpoint, sac, rb, counters, args)
+        checkpoint()
     finally:
         finished.set()
         session.close()

@@ -280,6 +280,49 @@ def test_a_failing_background_learner_stops_the_car_and_keeps_the_state(tmp_path
     assert "train: error: the background learner failed (RuntimeError: out of memory); stopping" in capsys.readouterr().err
 
 
+def test_train_checks_its_checkpoint_before_the_car_is_armed(tmp_path):
+    def train(*extra):
+        return subprocess.run([sys.executable, "-m", "deploy.jetracer", "train", "--total-steps", "50", "--log-dir", str(tmp_path / "logs"),
+                               *FAST, *extra], cwd=ROOT, capture_output=True, text=True, timeout=120)  # fmt: skip
+
+    (tmp_path / "afile").write_text("")
+    out = train("--checkpoint", str(tmp_path / "afile" / "train.pt"))  # its directory cannot be made
+    assert out.returncode != 0 and "train: error: cannot write --checkpoint" in out.stderr
+    assert "Traceback" not in out.stderr and not (tmp_path / "logs").exists()  # nothing driven, nothing logged
+    earlier = tmp_path / "earlier.pt"
+    earlier.write_bytes(b"45 minutes of training")
+    out = train("--checkpoint", str(earlier))  # a fresh run would have overwritten it at its first pause
+    assert out.returncode != 0 and "holds an earlier training; pass --resume to continue it" in out.stderr
+    assert earlier.read_bytes() == b"45 minutes of training" and not (tmp_path / "logs").exists()
+
+
+def test_a_checkpoint_that_cannot_be_written_mid_run_stops_the_car(tmp_path, monkeypatch):
+    import errno
+
+    saves, real_save = [], jetracer.save_training_state
+    controllers = []
+
+    def save(path, sac, rb, counters, args):
+        saves.append(counters["step"])
+        if len(saves) == 3:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real_save(path, sac, rb, counters, args)
+
+    real_close = jetracer.CarSession.close
+
+    def close(self):
+        controllers.append(self.link._port.controller)
+        real_close(self)
+
+    monkeypatch.setattr(jetracer, "save_training_state", save)
+    monkeypatch.setattr(jetracer.CarSession, "close", close)
+    with pytest.raises(SystemExit, match="train: error: cannot write --checkpoint .*No space left on device"):
+        jetracer.main(["train", "--total-steps", "500", "--train-every", "40", "--gradient-steps", "2",
+                       "--checkpoint", str(tmp_path / "t.pt"), "--log-dir", str(tmp_path), *FAST])  # fmt: skip
+    assert saves == [0, 40, 80]  # before arming, then at every pause until the disk was full
+    assert controllers[0].throttle == 0.0 and controllers[0].estop_latched  # the session was closed: STOP, ESTOP
+
+
 def test_sigterm_stops_a_drive_cleanly(tmp_path):
     import signal
     import time
