@@ -76,6 +76,8 @@ def rollout(env, policy: Baseline, seed: int) -> np.ndarray:
     rewards = []
     while True:
         action = policy(obs)
+        if action is None:
+            raise ValueError("the baseline returned None (it only intervenes), so it cannot be measured on its own")
         obs, reward, terminated, truncated, _ = env.step(action)
         rewards.append(float(reward))
         if terminated or truncated:
@@ -89,12 +91,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--seed", type=int, default=0, help="episode i is reset with seed + i")
     args = parser.parse_args(argv)
+    if args.episodes < 1 or args.seed < 0:
+        parser.error(f"--episodes must be >= 1 and --seed >= 0, got {args.episodes} and {args.seed}")
     try:
         env = make_env(args.env_id)
         baseline = get_baseline(args.env_id, args.baseline)
+        traces = [rollout(env, baseline, args.seed + i) for i in range(args.episodes)]
     except ValueError as err:
         parser.exit(2, f"error: {err}\n")
-    traces = [rollout(env, baseline, args.seed + i) for i in range(args.episodes)]
     returns = np.array([t.sum() for t in traces])
     lengths = np.array([len(t) for t in traces])
     print(f"{args.env_id}, {args.episodes} episodes from seed {args.seed}")

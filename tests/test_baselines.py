@@ -1,5 +1,6 @@
 """The baseline controllers: valid, deterministic, in their measured band; the registry; the CLI."""
 
+import os
 import subprocess
 import sys
 
@@ -116,6 +117,21 @@ def test_cli_prints_the_baseline_figures():
         [sys.executable, "-m", "envs.baselines", "--env-id", "CartPole-v1"], cwd=ROOT, capture_output=True, text=True
     )
     assert bad.returncode == 2 and "no baseline for 'CartPole-v1'" in bad.stderr
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--episodes", "0"], "--episodes must be >= 1 and --seed >= 0, got 0 and 0"),  # was a traceback from min() of nothing
+        (["--seed", "-1"], "--episodes must be >= 1 and --seed >= 0, got 20 and -1"),
+        (["--baseline", "intervener:only_when_fast"], "error: the baseline returned None (it only intervenes)"),
+    ],
+)
+def test_cli_refuses_what_it_cannot_measure(args, message, tmp_path):
+    (tmp_path / "intervener.py").write_text("def only_when_fast(obs):\n    return None\n")
+    env = {**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{ROOT}"}
+    out = subprocess.run([sys.executable, "-m", "envs.baselines", "--episodes", "20", *args], cwd=ROOT, capture_output=True, text=True, env=env)
+    assert out.returncode == 2 and message in out.stderr and "Traceback" not in out.stderr
 
 
 @pytest.mark.parametrize("script", ["sac_continuous", "jirl_sac_continuous", "ppo_il", "trpo_il"])
