@@ -71,6 +71,9 @@ def main() -> None:
     parser.add_argument("--send-hz", type=float, default=50.0)
     parser.add_argument("--frames", type=int, default=100_000)
     args = parser.parse_args()
+    minimums = {"--trials": (args.trials, 1), "--frames": (args.frames, 1), "--watchdog-ms": (args.watchdog_ms, 1), "--send-hz": (args.send_hz, 1)}
+    if too_small := [f"{flag} must be at least {low}" for flag, (value, low) in minimums.items() if not value >= low]:
+        parser.error("; ".join(too_small))
     latencies = sorted(watchdog_trials(args.trials, args.watchdog_ms, args.send_hz))
     bound = args.watchdog_ms / 1000 + 1 / args.send_hz
     within = sum(latency <= bound for latency in latencies)

@@ -57,6 +57,9 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=3000)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
+    minimums = {"--frames": (args.frames, 1), "--seed": (args.seed, 0)}
+    if too_small := [f"{flag} must be at least {low}" for flag, (value, low) in minimums.items() if not value >= low]:
+        parser.error("; ".join(too_small))
     rng = np.random.default_rng(args.seed)
     env = JetRacerTrackEnv(random_start=False, randomize_lighting=True)
     env.reset(seed=args.seed)

@@ -22,6 +22,9 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--rows", type=int, default=12)
     args = parser.parse_args()
+    minimums = {"--width": (args.width, 1), "--steps": (args.steps, 1), "--rows": (args.rows, 1)}
+    if too_small := [f"{flag} must be at least {low}" for flag, (value, low) in minimums.items() if not value >= low]:
+        parser.error("; ".join(too_small))
     # the script's default delayed actor update (policy_frequency 2), as in training
     step = training_step(str(ROOT / "sac_continuous.py"), args.width, policy_frequency=2)
 

@@ -67,6 +67,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--workdir", type=Path, default=ROOT / "benchmarks" / "results" / "relu_variants")
     args = parser.parse_args()
+    minimums = {"--widths": (min(args.widths), 1), "--steps": (args.steps, 1), "--repeats": (args.repeats, 1)}
+    if too_small := [f"{flag} must be at least {low}" for flag, (value, low) in minimums.items() if not value >= low]:
+        parser.error("; ".join(too_small))
     args.workdir.mkdir(parents=True, exist_ok=True)
     paths = write_variants(args.workdir)
     names = list(paths)

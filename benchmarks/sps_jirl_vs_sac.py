@@ -32,6 +32,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--workdir", type=Path, default=ROOT / "benchmarks" / "results" / "sps_jirl_vs_sac")
     args = parser.parse_args()
+    minimums = {"--widths": (min(args.widths), 1), "--steps": (args.steps, 1), "--repeats": (args.repeats, 1), "--learning-starts": (args.learning_starts, 0)}
+    if too_small := [f"{flag} must be at least {low}" for flag, (value, low) in minimums.items() if not value >= low]:
+        parser.error("; ".join(too_small))
     args.workdir.mkdir(parents=True, exist_ok=True)
     print(f"Pendulum-v1, {args.steps} steps, learning starts {args.learning_starts}, batch 256, 1 thread")
     print("| width | JIRL SPS (median) | SAC SPS (median) | ratio JIRL/SAC (median of pairs) | pairs |")

@@ -60,6 +60,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--workdir", type=Path, default=ROOT / "benchmarks" / "results" / "sps_trust_region")
     args = parser.parse_args()
+    minimums = {"--steps": (args.steps, 1), "--repeats": (args.repeats, 1)}
+    if too_small := [f"{flag} must be at least {low}" for flag, (value, low) in minimums.items() if not value >= low]:
+        parser.error("; ".join(too_small))
     args.workdir.mkdir(parents=True, exist_ok=True)
     print(f"{args.env_id}, {args.steps} steps, 1 thread")
     print("| algorithm | ours SPS (median) | SB3 SPS (median) | ratio ours/SB3 (median of pairs) | pairs |")

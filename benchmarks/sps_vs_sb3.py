@@ -72,6 +72,9 @@ def main() -> None:
     parser.add_argument("--before", default="", help="git revision of an earlier sac_continuous.py to time too")
     parser.add_argument("--workdir", type=Path, default=ROOT / "benchmarks" / "results" / "sps_vs_sb3")
     args = parser.parse_args()
+    minimums = {"--widths": (min(args.widths), 1), "--steps": (args.steps, 1), "--repeats": (args.repeats, 1), "--learning-starts": (args.learning_starts, 0)}
+    if too_small := [f"{flag} must be at least {low}" for flag, (value, low) in minimums.items() if not value >= low]:
+        parser.error("; ".join(too_small))
     args.workdir.mkdir(parents=True, exist_ok=True)
     names = ["sac_continuous", "jirl_sac_continuous", "sb3"]
     if args.before:

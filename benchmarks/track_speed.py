@@ -23,6 +23,9 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=2000)
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
+    minimums = {"--steps": (args.steps, 1), "--repeats": (args.repeats, 1)}
+    if too_small := [f"{flag} must be at least {low}" for flag, (value, low) in minimums.items() if not value >= low]:
+        parser.error("; ".join(too_small))
     env = make_env("JetRacerTrack-v0")
     baseline = get_baseline("JetRacerTrack-v0")
     rates, cpu_rates = [], []

@@ -119,3 +119,27 @@ def test_track_laps_refuses_zero_episodes(monkeypatch, capsys):
     with pytest.raises(SystemExit):
         track_laps.main()
     assert "--episodes must be at least 1" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "tool, option, message",
+    [
+        ("sps_jirl_vs_sac", ["--learning-starts", "-1"], "--learning-starts must be at least 0"),
+        ("sps_vs_sb3", ["--widths", "64", "0"], "--widths must be at least 1"),
+        ("sps_trust_region", ["--steps", "0"], "--steps must be at least 1"),
+        ("update_speed", ["--repeats", "0"], "--repeats must be at least 1"),  # each was a median of nothing
+        ("relu_variants", ["--repeats", "0"], "--repeats must be at least 1"),
+        ("track_speed", ["--repeats", "0"], "--repeats must be at least 1"),
+        ("profile_sac", ["--rows", "0"], "--rows must be at least 1"),
+        ("deploy_link", ["--send-hz", "nan", "--trials", "0"], "--trials must be at least 1; --send-hz must be at least 1"),
+        ("observation_choice", ["--seed", "-1"], "--seed must be at least 0"),
+    ],
+)
+def test_the_speed_and_choice_benchmarks_refuse_counts_out_of_range(tool, option, message, monkeypatch, capsys, tmp_path):
+    import importlib
+
+    monkeypatch.setattr(sys, "argv", [f"{tool}.py", *option])
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_info:
+        importlib.import_module(tool).main()
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
