@@ -448,6 +448,8 @@ def evaluate(path: str, env_id: str, episodes: int, seed: int) -> list[float]:
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
     if checkpoint["obs_dim"] != obs_dim or len(checkpoint["action_low"]) != act_dim:
         raise ValueError(f"checkpoint expects {checkpoint['obs_dim']} observations and {len(checkpoint['action_low'])} actions ({checkpoint['env_id']}); this env has {obs_dim} and {act_dim}")
+    if not np.allclose(checkpoint["action_low"], env.action_space.low) or not np.allclose(checkpoint["action_high"], env.action_space.high):
+        raise ValueError(f"checkpoint action bounds differ from this env's {env.action_space}")
     agent = Agent(obs_dim, act_dim, checkpoint["hidden_size"])
     try:
         agent.load_state_dict(checkpoint["agent"])

@@ -153,6 +153,10 @@ def test_end_to_end_logs_saves_and_evaluates(name, tmp_path):
     broken.write_bytes(model.read_bytes()[:100])
     with pytest.raises(ValueError, match="not a readable checkpoint"):
         script.evaluate(str(broken), "Pendulum-v1", 1, 1)
+    other_bounds = torch.load(model, weights_only=True) | {"action_low": [-1.0], "action_high": [1.0]}  # same sizes, other units
+    torch.save(other_bounds, tmp_path / "other_bounds.cleanrl_model")
+    with pytest.raises(ValueError, match="checkpoint action bounds differ"):
+        script.evaluate(str(tmp_path / "other_bounds.cleanrl_model"), "Pendulum-v1", 1, 1)
 
 
 @pytest.mark.parametrize("name", ["ppo_il", "trpo_il"])
