@@ -7,6 +7,7 @@ from typing import Callable
 
 import numpy as np
 import pytest
+import torch
 
 from conftest import ROOT
 
@@ -50,8 +51,6 @@ def test_train_writes_a_checkpoint_and_resumes_from_it(tmp_path):
     out = subprocess.run([sys.executable, "-m", "deploy.jetracer", *args], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert state.exists() and (tmp_path / "train.pt.actor.cleanrl_model").exists()
-    import torch
-
     saved = torch.load(state, weights_only=True)
     assert saved["counters"]["step"] == 100 and saved["counters"]["updates"] == 10
     size = len(saved["buffer"]["obs"])
@@ -127,7 +126,7 @@ def test_gamepad_events_estop_and_takeover(tmp_path):
     os.close(writer_fd)
 
 
-def test_a_lost_gamepad_is_reported_once_and_closes_quietly(tmp_path, monkeypatch):
+def test_a_lost_gamepad_raises_gamepad_lost_and_closes_quietly(tmp_path, monkeypatch):
     import errno
     import os
 
@@ -175,44 +174,39 @@ def test_training_e_stops_and_keeps_its_state_when_the_gamepad_is_lost(tmp_path,
     jetracer.main(args)
     assert estops[0] == 61  # e-stopped on the poll that found the gamepad gone, before close()
     assert len(polls) == 61  # and no control period after it
-    import torch
-
     assert torch.load(state, weights_only=True)["counters"]["step"] == 60  # saved on the way out, nothing lost
     assert f"train: error: gamepad '{path}' lost (No such device); e-stopped" in capsys.readouterr().err
+
+
+def at_period(monkeypatch, n: int, event: Callable) -> None:
+    """Call event(session) at the end of the n-th control period (CarSession.wait, counted from 1)."""
+    waits, real_wait = [], jetracer.CarSession.wait
+
+    def wait(self):
+        waits.append(1)
+        if len(waits) == n:
+            event(self)
+        real_wait(self)
+
+    monkeypatch.setattr(jetracer.CarSession, "wait", wait)
 
 
 def test_training_ends_and_keeps_its_state_when_the_watchdog_trips(tmp_path, monkeypatch, capsys):
     import time
 
-    waits, real_wait = [], jetracer.CarSession.wait
-
-    def wait(self):
-        waits.append(1)
-        if len(waits) == 50:  # a host stall longer than the watchdog: the controller disarms itself
-            self.link._port.controller.poll(time.monotonic() + 10.0)
-        real_wait(self)
-
-    monkeypatch.setattr(jetracer.CarSession, "wait", wait)
+    # a host stall longer than the watchdog: the controller disarms itself
+    at_period(monkeypatch, 50, lambda session: session.link._port.controller.poll(time.monotonic() + 10.0))
     state = tmp_path / "train.pt"
     jetracer.main(["train", "--total-steps", "500", "--train-every", "40", "--gradient-steps", "2",
                    "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST])  # fmt: skip
-    import torch
-
     assert 50 <= torch.load(state, weights_only=True)["counters"]["step"] <= 52  # stopped within a period or two, saved
     err = capsys.readouterr().err
     assert "train: error: the controller is no longer armed (its watchdog tripped" in err and len(err.strip().splitlines()) == 1
 
 
 def test_a_drive_ends_when_the_controller_restarts_unarmed(tmp_path, monkeypatch, capsys):
-    waits, real_wait = [], jetracer.CarSession.wait
-
-    def wait(self):
-        waits.append(1)
-        if len(waits) == 30:  # a brown-out restart: the controller comes back unarmed and says nothing
-            self.link._port.controller.armed = False
-        real_wait(self)
-
-    monkeypatch.setattr(jetracer.CarSession, "wait", wait)
+    # a brown-out restart: the controller comes back unarmed and says nothing
+    at_period(monkeypatch, 30, lambda session: setattr(session.link._port.controller, "armed", False))
     rewards = jetracer.baseline(jetracer.Baseline(steps=300, log_dir=str(tmp_path)))
     assert 30 <= len(rewards) <= 32  # no reward is counted for periods the car did not drive
     assert "baseline: error: the controller is no longer armed (it refused a command as not armed; did it restart?)" in capsys.readouterr().err
@@ -244,8 +238,6 @@ def test_a_camera_that_stops_delivering_ends_the_run(mode, tmp_path, monkeypatch
         assert len(jetracer.baseline(jetracer.Baseline(steps=300, log_dir=str(tmp_path)))) == 30
     else:  # before, training waited for a fresh frame for ever, the car stopped
         jetracer.main(["train", "--total-steps", "500", "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST])
-        import torch
-
         assert torch.load(state, weights_only=True)["counters"]["step"] == 30  # saved on the way out
     assert len(reads) == 30 + 40  # 2 s of stale frames at 20 Hz, then the run ends
     assert f"{mode}: error: no fresh camera frame for 40 periods (2 s); stopping" in capsys.readouterr().err
@@ -272,8 +264,6 @@ def test_a_failing_background_learner_stops_the_car_and_keeps_the_state(tmp_path
     state = tmp_path / "train.pt"
     jetracer.main(["train", "--total-steps", "1000", "--learner", "background", "--train-every", "10", "--gradient-steps", "5",
                    "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST])  # fmt: skip
-    import torch
-
     counters = torch.load(state, weights_only=True)["counters"]
     assert counters["updates"] == 5 and counters["step"] < 100  # ended soon after, not at 1000 steps without a learner
     assert "learner_error" not in counters  # a resume starts clean
