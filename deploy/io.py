@@ -7,6 +7,7 @@ frame older than two control periods as lost. OpenCV and the simulator are impor
 
 from __future__ import annotations
 
+import fcntl
 import os
 import struct
 import threading
@@ -137,6 +138,18 @@ class GamepadLost(Exception):
     """The gamepad stopped answering (unplugged, or a wireless one out of range): its e-stop is gone."""
 
 
+JSIOCGVERSION = 0x80046A01  # linux/joystick.h: _IOR('j', 0x01, __u32), answered by joystick devices only
+
+
+def is_joystick(fd: int) -> bool:
+    """Whether fd is a Linux joystick device: it answers the joystick API's version query."""
+    try:
+        fcntl.ioctl(fd, JSIOCGVERSION, bytearray(4))
+    except OSError:
+        return False
+    return True
+
+
 class Gamepad:
     """A Linux joystick device (/dev/input/jsN) read without extra dependencies.
 
@@ -151,6 +164,11 @@ class Gamepad:
             self.fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
         except OSError as err:
             raise ValueError(f"cannot open gamepad {path!r}: {err.strerror}") from None
+        if not is_joystick(self.fd):
+            # an evdev device (/dev/input/eventN) has 24-byte events: read as 8-byte ones they would be
+            # random buttons and axes, and a file or /dev/null would be an e-stop that never fires
+            os.close(self.fd)
+            raise ValueError(f"{path!r} is not a joystick device (/dev/input/jsN)")
         self.path = path
         self.axes: dict = {}
         self.buttons: dict = {}

@@ -105,12 +105,23 @@ def test_background_learner_keeps_the_gradient_step_ratio(tmp_path):
     assert "'updates': 25" in out.stdout  # 100 steps x 10 / 40, trained while driving
 
 
-def test_gamepad_events_estop_and_takeover(tmp_path):
+def fifo_gamepad(tmp_path, monkeypatch) -> str:
+    """A FIFO that deploy.io takes for a joystick device: the tests write its events."""
     import os
-    import struct
+
+    from deploy import io
 
     path = str(tmp_path / "js0")
     os.mkfifo(path)
+    monkeypatch.setattr(io, "is_joystick", lambda fd: True)
+    return path
+
+
+def test_gamepad_events_estop_and_takeover(tmp_path, monkeypatch):
+    import os
+    import struct
+
+    path = fifo_gamepad(tmp_path, monkeypatch)
     writer_fd = os.open(path, os.O_RDWR | os.O_NONBLOCK)  # keeps the FIFO open for the reader
     from deploy.io import Gamepad
 
@@ -126,14 +137,27 @@ def test_gamepad_events_estop_and_takeover(tmp_path):
     os.close(writer_fd)
 
 
+def test_a_device_that_is_no_joystick_is_refused_and_closed(tmp_path):
+    import os
+
+    from deploy import io
+
+    fifo = str(tmp_path / "fifo")
+    os.mkfifo(fifo)
+    open_fds = len(os.listdir("/proc/self/fd"))
+    for path in ("/dev/null", fifo, str(tmp_path)):  # a device, a FIFO, a directory: none answers the joystick API
+        with pytest.raises(ValueError, match="is not a joystick device"):
+            io.Gamepad(path)
+    assert len(os.listdir("/proc/self/fd")) == open_fds  # each refused descriptor was closed
+
+
 def test_a_lost_gamepad_raises_gamepad_lost_and_closes_quietly(tmp_path, monkeypatch):
     import errno
     import os
 
     from deploy import io
 
-    path = str(tmp_path / "js0")
-    os.mkfifo(path)
+    path = fifo_gamepad(tmp_path, monkeypatch)
     pad = io.Gamepad(path)
 
     def unplugged(fd, size):
@@ -152,8 +176,7 @@ def test_training_e_stops_and_keeps_its_state_when_the_gamepad_is_lost(tmp_path,
 
     from deploy import io
 
-    path = str(tmp_path / "js0")
-    os.mkfifo(path)
+    path = fifo_gamepad(tmp_path, monkeypatch)
     polls, estops = [], []
     real_estop = jetracer.HostLink.estop
 
@@ -344,6 +367,8 @@ def test_train_refuses_the_episode_based_schedule(tmp_path):
         (["--camera", "file:no_such_video.mp4"], "baseline: error: cannot open camera 'no_such_video.mp4'"),
         (["--camera", "usb:left"], "usb:N takes a device number N"),
         (["--gamepad", "/dev/input/no_such_js"], "cannot open gamepad '/dev/input/no_such_js': No such file or directory"),
+        (["--gamepad", "/dev/null"], "baseline: error: '/dev/null' is not a joystick device (/dev/input/jsN)"),
+        (["--gamepad", "README.md"], "baseline: error: 'README.md' is not a joystick device (/dev/input/jsN)"),
         (["--port", "/dev/no_such_tty"], "baseline: error: cannot open the motor controller"),
     ],
 )
