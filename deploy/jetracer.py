@@ -98,6 +98,8 @@ class Common:
 
 @dataclass
 class Run(Common):
+    """Drive the car with a trained policy (its deterministic action) and report its reward per step."""
+
     checkpoint: str = ""
     """a checkpoint of jirl_sac_continuous.py or sac_continuous.py trained on JetRacerTrack-v0 or by `train`"""
     steps: int = 1200
@@ -109,6 +111,8 @@ class Run(Common):
 
 @dataclass
 class Baseline(Common):
+    """Drive the car with the baseline lane follower and measure its reward per step."""
+
     steps: int = 1200
     """control steps to drive; the mean reward per step printed at the end is train's --baseline-reward-per-step"""
 
@@ -125,6 +129,8 @@ def car_jirl_defaults() -> jirl.Args:
 
 @dataclass
 class Train(Common):
+    """Train a policy on the car with JIRL: the gate hands control between the baseline and the agent."""
+
     total_steps: int = 54_000
     """control steps of training (54k = 45 minutes at 20 Hz, the paper's budget)"""
     train_every: int = 400
@@ -395,7 +401,13 @@ def report(session: CarSession, rewards: List[float], mode: str) -> None:
     print(f"{mode}: {len(rewards)} steps, mean reward per step {np.mean(rewards) if rewards else float('nan'):.4f}")
     if laps:
         print(f"{mode}: lap times {', '.join(f'{t:.2f}' for t in laps)} s")
-    print(f"{mode}: {session.timing()}, rtt {session.link.round_trip_stats()}, frames dropped {session.frames_dropped}")
+    timing, rtt = session.timing(), session.link.round_trip_stats()
+    parts = [f"frames dropped {session.frames_dropped}"]
+    if rtt:
+        parts.insert(0, f"link round trip p50 {1000 * rtt['p50']:.2f} ms, p99 {1000 * rtt['p99']:.2f} ms")
+    if timing:
+        parts.insert(0, f"control period p50 {timing['period_p50_ms']:.1f} ms, p99 {timing['period_p99_ms']:.1f} ms, jitter {timing['jitter_ms']:.2f} ms")
+    print(f"{mode}: {'; '.join(parts)}")
 
 
 def save_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuffer, counters: dict, args: Train) -> None:
@@ -590,7 +602,7 @@ def train(args: Train) -> dict:
         if shadow is not None:
             shadow.close()
     counters["rl_control_fraction"] = sum(rl_control) / len(rl_control) if rl_control else 0.0
-    print(f"train: {counters}")
+    print("train: " + ", ".join(f"{key} {value:.4g}" if isinstance(value, float) else f"{key} {value}" for key, value in counters.items()))
     return counters
 
 

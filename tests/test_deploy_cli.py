@@ -102,7 +102,7 @@ def test_background_learner_keeps_the_gradient_step_ratio(tmp_path):
         cwd=ROOT, capture_output=True, text=True, timeout=120,
     )  # fmt: skip
     assert out.returncode == 0, out.stderr
-    assert "'updates': 25" in out.stdout  # 100 steps x 10 / 40, trained while driving
+    assert ", updates 25," in out.stdout  # 100 steps x 10 / 40, trained while driving
 
 
 def fifo_gamepad(tmp_path, monkeypatch) -> str:
