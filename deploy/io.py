@@ -12,7 +12,7 @@ import os
 import struct
 import threading
 import time
-from typing import Optional, Tuple
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 
@@ -138,16 +138,21 @@ class GamepadLost(Exception):
     """The gamepad stopped answering (unplugged, or a wireless one out of range): its e-stop is gone."""
 
 
-JSIOCGVERSION = 0x80046A01  # linux/joystick.h: _IOR('j', 0x01, __u32), answered by joystick devices only
+# linux/joystick.h: _IOR('j', 0x11, __u8) and _IOR('j', 0x12, __u8), answered by joystick devices only
+JSIOCGAXES, JSIOCGBUTTONS = 0x80016A11, 0x80016A12
 
 
-def is_joystick(fd: int) -> bool:
-    """Whether fd is a Linux joystick device: it answers the joystick API's version query."""
-    try:
-        fcntl.ioctl(fd, JSIOCGVERSION, bytearray(4))
-    except OSError:
-        return False
-    return True
+def joystick_shape(fd: int) -> Optional[Tuple[int, int]]:
+    """(axes, buttons) of the Linux joystick device open on fd; None if it is no joystick device."""
+    counts = []
+    for request in (JSIOCGAXES, JSIOCGBUTTONS):
+        count = bytearray(1)
+        try:
+            fcntl.ioctl(fd, request, count)
+        except OSError:
+            return None
+        counts.append(count[0])
+    return counts[0], counts[1]
 
 
 class Gamepad:
@@ -164,14 +169,25 @@ class Gamepad:
             self.fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
         except OSError as err:
             raise ValueError(f"cannot open gamepad {path!r}: {err.strerror}") from None
-        if not is_joystick(self.fd):
+        shape = joystick_shape(self.fd)
+        if shape is None:
             # an evdev device (/dev/input/eventN) has 24-byte events: read as 8-byte ones they would be
             # random buttons and axes, and a file or /dev/null would be an e-stop that never fires
             os.close(self.fd)
             raise ValueError(f"{path!r} is not a joystick device (/dev/input/jsN)")
+        self.num_axes, self.num_buttons = shape
         self.path = path
         self.axes: dict = {}
         self.buttons: dict = {}
+
+    def require(self, buttons: Dict[str, int], axes: Dict[str, int]) -> None:
+        """ValueError naming each button or axis (by its option) that this device does not have:
+        an e-stop on a button that does not exist would never fire."""
+        missing = [f"{name} {i}" for name, i in buttons.items() if not 0 <= i < self.num_buttons]
+        missing += [f"{name} {i}" for name, i in axes.items() if not 0 <= i < self.num_axes]
+        if missing:
+            span = lambda n: f"0-{n - 1}" if n else "none"  # noqa: E731
+            raise ValueError(f"gamepad {self.path!r} has buttons {span(self.num_buttons)} and axes {span(self.num_axes)}: no {', '.join(missing)}")
 
     def poll(self) -> None:
         """Read every pending event; GamepadLost if the device is gone (the kernel answers ENODEV)."""

@@ -204,6 +204,9 @@ class CarSession:
             self.world = SimWorld(self.link._port.controller, seed=args.seed) if args.port.startswith("mockjetracer") else None
             self.camera = open_camera(args.camera, self.world)
             self.gamepad = Gamepad(args.gamepad) if args.gamepad else None
+            if self.gamepad is not None:
+                self.gamepad.require({"--estop-button": args.estop_button},
+                                     {"--takeover-axis": args.takeover_axis, "--steering-axis": args.steering_axis})  # fmt: skip
         except (ValueError, OSError) as err:
             self.close()
             raise SystemExit(f"{mode}: error: {err}") from None

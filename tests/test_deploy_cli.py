@@ -113,7 +113,7 @@ def fifo_gamepad(tmp_path, monkeypatch) -> str:
 
     path = str(tmp_path / "js0")
     os.mkfifo(path)
-    monkeypatch.setattr(io, "is_joystick", lambda fd: True)
+    monkeypatch.setattr(io, "joystick_shape", lambda fd: (8, 11))  # axes, buttons
     return path
 
 
@@ -149,6 +149,40 @@ def test_a_device_that_is_no_joystick_is_refused_and_closed(tmp_path):
         with pytest.raises(ValueError, match="is not a joystick device"):
             io.Gamepad(path)
     assert len(os.listdir("/proc/self/fd")) == open_fds  # each refused descriptor was closed
+
+
+@pytest.mark.parametrize(
+    "option, missing",
+    [(["--estop-button", "11"], "no --estop-button 11"), (["--takeover-axis", "8", "--steering-axis", "9"], "no --takeover-axis 8, --steering-axis 9")],
+)
+def test_a_gamepad_without_the_chosen_button_or_axis_is_refused_before_the_car_is_armed(tmp_path, monkeypatch, option, missing):
+    path = fifo_gamepad(tmp_path, monkeypatch)  # 8 axes, 11 buttons
+    armed = []
+    monkeypatch.setattr(jetracer.HostLink, "arm", lambda self: armed.append(1) or True)
+    with pytest.raises(SystemExit, match=f"baseline: error: gamepad '{path}' has buttons 0-10 and axes 0-7: {missing}$"):
+        jetracer.main(["baseline", "--steps", "5", "--gamepad", path, "--log-dir", str(tmp_path / "runs"), *option])
+    assert not armed and not (tmp_path / "runs").exists()
+    # the last button and axis exist
+    jetracer.main(["baseline", "--steps", "5", "--gamepad", path, "--log-dir", str(tmp_path / "runs"), "--estop-button", "10",
+                   "--takeover-axis", "7"])  # fmt: skip
+    assert armed
+
+
+def test_joystick_shape_asks_the_driver_for_its_axes_and_buttons(monkeypatch):
+    from deploy import io
+
+    def ior(nr: int, size: int) -> int:  # linux/ioctl.h: _IOR('j', nr, size) for the joystick API
+        return (2 << 30) | (size << 16) | (ord("j") << 8) | nr
+
+    answers = {ior(0x11, 1): 6, ior(0x12, 1): 12}  # JSIOCGAXES, JSIOCGBUTTONS
+
+    def ioctl(fd, request, buffer):
+        if request not in answers:
+            raise OSError(25, "Inappropriate ioctl for device")
+        buffer[0] = answers[request]
+
+    monkeypatch.setattr(io.fcntl, "ioctl", ioctl)
+    assert io.joystick_shape(3) == (6, 12)
 
 
 def test_a_lost_gamepad_raises_gamepad_lost_and_closes_quietly(tmp_path, monkeypatch):
