@@ -30,29 +30,59 @@ def csi_pipeline(width: int = FRAME_SHAPE[1], height: int = FRAME_SHAPE[0], fps:
     )
 
 
+def to_policy_frame(frame: np.ndarray) -> np.ndarray:
+    """A camera's frame as FRAME_SHAPE BGR uint8: grey and BGRA frames get three channels, other sizes are resized.
+
+    ValueError for anything else (a 16-bit or 2-channel frame), which the control loop would misread.
+    """
+    import cv2
+
+    frame = np.asarray(frame)
+    if frame.dtype != np.uint8 or not (frame.ndim == 2 or (frame.ndim == 3 and frame.shape[2] in (1, 3, 4))):
+        raise ValueError(f"a {frame.shape} {frame.dtype} frame; expected 8-bit grey, BGR or BGRA")
+    if frame.ndim == 2 or frame.shape[2] == 1:
+        frame = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
+    elif frame.shape[2] == 4:
+        frame = cv2.cvtColor(frame, cv2.COLOR_BGRA2BGR)
+    if frame.shape != FRAME_SHAPE:
+        frame = cv2.resize(frame, (FRAME_SHAPE[1], FRAME_SHAPE[0]), interpolation=cv2.INTER_AREA)
+    return frame
+
+
 class OpenCVCamera:
-    """A cv2.VideoCapture read by a background thread, so `read()` returns the newest frame at once."""
+    """A cv2.VideoCapture read by a background thread, so `read()` returns the newest frame at once.
+
+    The first frame is read when the camera opens, so a format the policy cannot use is an error there,
+    before the car is armed.
+    """
 
     def __init__(self, source, api: Optional[int] = None, realtime: bool = True) -> None:
         import cv2
 
-        self._cv2 = cv2
         self.capture = cv2.VideoCapture(source, api) if api is not None else cv2.VideoCapture(source)
         if not self.capture.isOpened():
             raise ValueError(f"cannot open camera {source!r}")
         self.realtime = realtime  # False for a video file: one new frame per read, at the file's pace
         self._latest: Frame = (None, 0.0)
+        self._pending: Optional[np.ndarray] = None  # a video file's first frame, read at open
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self.frames_read = 0
+        ok, frame = self.capture.read()
+        if ok:
+            try:
+                frame = to_policy_frame(frame)
+            except ValueError as err:
+                self.capture.release()
+                raise ValueError(f"camera {source!r} delivered {err}") from None
+            if realtime:
+                self._latest = (frame, time.monotonic())
+                self.frames_read = 1
+            else:
+                self._pending = frame
         if realtime:
             self._thread = threading.Thread(target=self._grab, daemon=True)
             self._thread.start()
-
-    def _convert(self, frame: np.ndarray) -> np.ndarray:
-        if frame.shape != FRAME_SHAPE:
-            frame = self._cv2.resize(frame, (FRAME_SHAPE[1], FRAME_SHAPE[0]), interpolation=self._cv2.INTER_AREA)
-        return frame
 
     def _grab(self) -> None:
         while not self._stop.is_set():
@@ -60,22 +90,28 @@ class OpenCVCamera:
             if not ok:
                 time.sleep(0.005)
                 continue
+            latest = (to_policy_frame(frame), time.monotonic())
             with self._lock:
-                self._latest = (self._convert(frame), time.monotonic())
+                self._latest = latest
                 self.frames_read += 1
 
     def read(self) -> Frame:
         if not self.realtime:
-            ok, frame = self.capture.read()
-            if not ok:
-                return None, 0.0
+            frame, self._pending = self._pending, None
+            if frame is None:
+                ok, frame = self.capture.read()
+                if not ok:
+                    return None, 0.0
+                frame = to_policy_frame(frame)
             self.frames_read += 1
-            return self._convert(frame), time.monotonic()
+            return frame, time.monotonic()
         with self._lock:
             return self._latest
 
     def close(self) -> None:
         self._stop.set()
+        if self.realtime:
+            self._thread.join(timeout=2.0)  # releasing the capture inside the thread's read() is undefined in OpenCV
         self.capture.release()
 
 

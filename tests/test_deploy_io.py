@@ -1,0 +1,79 @@
+"""deploy.io's OpenCV cameras: frame conversion, a recorded video replayed, the reader thread's shutdown."""
+
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from deploy import io
+from envs.car_interface import FRAME_SHAPE
+
+
+def write_video(path, levels, size=(160, 120)) -> str:
+    """An MJPG video whose frame i is uniformly grey at levels[i]."""
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 20, size)
+    assert writer.isOpened()
+    for level in levels:
+        writer.write(np.full((size[1], size[0], 3), level, dtype=np.uint8))
+    writer.release()
+    return str(path)
+
+
+def test_a_recorded_video_is_replayed_frame_by_frame_at_the_policys_size(tmp_path):
+    levels = [0, 60, 120, 180, 240]
+    camera = io.open_camera(f"file:{write_video(tmp_path / 'drive.avi', levels)}")
+    for level in levels:
+        frame, captured = camera.read()
+        assert frame.shape == FRAME_SHAPE and frame.dtype == np.uint8
+        assert abs(frame.mean() - level) < 4  # JPEG's loss, nothing more
+        assert abs(captured - time.monotonic()) < 1.0
+    assert camera.read() == (None, 0.0)  # the video ended: no frame, which the control loop counts as stale
+    assert camera.frames_read == len(levels)
+    camera.close()
+
+
+def test_the_reader_thread_keeps_the_newest_frame_and_is_joined_before_the_capture_is_released(tmp_path):
+    camera = io.OpenCVCamera(write_video(tmp_path / "drive.avi", [10, 100, 200]))  # realtime: a thread reads
+    deadline = time.monotonic() + 10
+    while camera.frames_read < 3 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    frame, _ = camera.read()
+    assert camera.frames_read == 3 and abs(frame.mean() - 200) < 4  # the newest of the three
+    camera.close()
+    assert not camera._thread.is_alive()
+
+
+def test_frames_become_three_channel_bgr_at_the_policys_size():
+    grey = np.tile(np.arange(160, dtype=np.uint8), (120, 1))
+    frame = io.to_policy_frame(grey)
+    expected = cv2.resize(grey, (FRAME_SHAPE[1], FRAME_SHAPE[0]), interpolation=cv2.INTER_AREA)
+    assert frame.shape == FRAME_SHAPE and all(np.array_equal(frame[..., c], expected) for c in range(3))
+    bgra = np.zeros((112, 112, 4), dtype=np.uint8)
+    bgra[..., 0], bgra[..., 3] = 50, 255
+    assert np.array_equal(io.to_policy_frame(bgra), np.stack([np.full((112, 112), v, np.uint8) for v in (50, 0, 0)], axis=2))
+    for bad in (np.zeros((112, 112, 3), np.uint16), np.zeros((112, 112, 2), np.uint8), np.zeros(5, np.uint8)):
+        with pytest.raises(ValueError, match="expected 8-bit grey, BGR or BGRA"):
+            io.to_policy_frame(bad)
+
+
+def test_a_camera_whose_frames_the_policy_cannot_use_is_refused_at_open(monkeypatch):
+    released = []
+
+    class DepthCamera:  # 16-bit frames, as a depth camera delivers
+        def __init__(self, *args):
+            pass
+
+        def isOpened(self):
+            return True
+
+        def read(self):
+            return True, np.zeros((480, 640), dtype=np.uint16)
+
+        def release(self):
+            released.append(True)
+
+    monkeypatch.setattr(cv2, "VideoCapture", DepthCamera)
+    with pytest.raises(ValueError, match=r"^camera 4 delivered a \(480, 640\) uint16 frame; expected 8-bit grey, BGR or BGRA$"):
+        io.open_camera("usb:4")
+    assert released == [True]
