@@ -199,3 +199,15 @@ def test_impossible_tracks_cars_and_rates_are_refused():
         TrackSpec(radius=0.2)  # the lane (0.5 m wide) would cross the bend's centre
     with pytest.raises(ValueError, match="impossible track"):
         TrackSpec(margin=math.nan)  # not the first size: min() would have let a NaN there through
+
+
+def test_the_track_passes_gymnasiums_env_checker_without_a_warning():
+    import warnings
+
+    from gymnasium.utils.env_checker import check_env
+
+    env = make_env("JetRacerTrack-v0", render_mode="rgb_array")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the checker warns about what it finds: each would fail here
+        check_env(env.unwrapped)  # spaces, seeded determinism of reset and step, render
+    env.close()
