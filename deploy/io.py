@@ -212,6 +212,7 @@ class Gamepad:
             os.close(self.fd)
             raise ValueError(f"{path!r} is not a joystick device (/dev/input/jsN)")
         self.num_axes, self.num_buttons = shape
+        self.presses: set = set()  # buttons pressed since was_pressed() last asked: a tap between two polls counts
         self.path = path
         self.axes: dict = {}
         self.buttons: dict = {}
@@ -241,8 +242,16 @@ class Gamepad:
                 kind &= 0x7F
                 if kind == 1:
                     self.buttons[number] = bool(value)
+                    if value:
+                        self.presses.add(number)
                 elif kind == 2:
                     self.axes[number] = value / 32767.0
+
+    def was_pressed(self, button: int) -> bool:
+        """Whether `button` is down, or went down since the last call (released again before a poll saw it)."""
+        pressed = button in self.presses or self.buttons.get(button, False)
+        self.presses.discard(button)
+        return pressed
 
     def close(self) -> None:
         try:

@@ -230,7 +230,11 @@ class CarSession:
             self.link.estop()  # at once, not at the next tick
 
     def observe(self) -> Optional[np.ndarray]:
-        """Advance the simulator (if any) one period and read the camera; None if the frame is stale."""
+        """Read the gamepad, advance the simulator (if any) one period and read the camera; None if the
+        frame is stale or the run is ending."""
+        self.check_gamepad()  # every period, fresh frame or not
+        if self.stop_requested:
+            return None
         if self.world is not None:
             self.world.tick()
         frame, captured = self.camera.read()
@@ -245,20 +249,25 @@ class CarSession:
         self.stale_periods = 0
         return preprocess(frame, self.previous_action)
 
-    def human_action(self) -> Optional[np.ndarray]:
-        """The gamepad's e-stop and takeover: an action while a human steers, else None."""
-        if self.gamepad is None:
-            return None
+    def check_gamepad(self) -> None:
+        """Read the gamepad: its e-stop button (held, or tapped since the last read) or its loss e-stops the
+        car and ends the run."""
+        if self.gamepad is None or self.stop_requested:
+            return
         try:
             self.gamepad.poll()
         except GamepadLost as err:  # without its e-stop the car must not drive: stop it and end the run
             self.link.estop()
             self.stop_requested = True
             print(f"{self.mode}: error: {err}; e-stopped", file=sys.stderr)
-            return None
-        if self.gamepad.buttons.get(self.args.estop_button):
+            return
+        if self.gamepad.was_pressed(self.args.estop_button):
             self.link.estop()
             self.stop_requested = True
+
+    def human_action(self) -> Optional[np.ndarray]:
+        """A human's action while the takeover axis is held (the gamepad as `observe` last read it), else None."""
+        if self.gamepad is None or self.stop_requested:
             return None
         if self.gamepad.axes.get(self.args.takeover_axis, -1.0) > 0.5:
             return np.array([-self.gamepad.axes.get(self.args.steering_axis, 0.0), -1.0], dtype=np.float32)
@@ -522,15 +531,21 @@ def train(args: Train) -> dict:
                     if args.learner == "pause":
                         session.link.stop()  # pause-and-train: the car waits, stopped, while the agent learns
                         if rb.size >= max(hp.learning_starts, hp.batch_size):
+                            losses = None
                             for _ in range(args.gradient_steps):
+                                session.check_gamepad()  # an e-stop tapped during the pause still ends the run
+                                if session.stop_requested:
+                                    break
                                 losses = sac.update(rb.sample(hp.batch_size), counters["updates"])
                                 counters["updates"] += 1
-                            for name, value in losses.items():
+                            for name, value in (losses or {}).items():
                                 session.writer.add_scalar(f"losses/{name}", value.item(), step)
                     else:
                         acting.load_state_dict(sac.actor.state_dict())
                     checkpoint()
                 session._next_tick = time.monotonic()
+                if session.stop_requested:  # e-stopped or signalled during the pause
+                    break
 
             next_obs = session.observe()
             if next_obs is None:  # stale frame: the car is stopped; the episode ends here

@@ -185,6 +185,50 @@ def test_joystick_shape_asks_the_driver_for_its_axes_and_buttons(monkeypatch):
     assert io.joystick_shape(3) == (6, 12)
 
 
+def test_a_tap_of_the_e_stop_between_two_reads_still_counts(tmp_path, monkeypatch):
+    import os
+    import struct
+
+    from deploy.io import Gamepad
+
+    path = fifo_gamepad(tmp_path, monkeypatch)
+    writer_fd = os.open(path, os.O_RDWR | os.O_NONBLOCK)
+    pad, event = Gamepad(path), struct.Struct("<IhBB")
+    os.write(writer_fd, event.pack(10, 1, 1, 0) + event.pack(40, 0, 1, 0))  # button 0 down, up 30 ms later
+    pad.poll()
+    assert pad.buttons[0] is False  # the state a poll sees has it released ...
+    assert pad.was_pressed(0) and not pad.was_pressed(0)  # ... the tap is kept until asked for, once
+    assert not pad.was_pressed(1)
+    pad.close()
+    os.close(writer_fd)
+
+
+def test_an_e_stop_tapped_during_a_training_pause_ends_the_run_there(tmp_path, monkeypatch):
+    import os
+    import struct
+
+    path = fifo_gamepad(tmp_path, monkeypatch)
+    writer_fd = os.open(path, os.O_RDWR | os.O_NONBLOCK)
+    real_update, estops = jetracer.jirl.SoftActorCritic.update, []
+    real_estop = jetracer.HostLink.estop
+
+    def update(self, data, step):
+        if step == 0:  # the first gradient step of the first pause: a person taps the e-stop
+            tap = struct.Struct("<IhBB")
+            os.write(writer_fd, tap.pack(10, 1, 1, 0) + tap.pack(40, 0, 1, 0))
+        return real_update(self, data, step)
+
+    monkeypatch.setattr(jetracer.jirl.SoftActorCritic, "update", update)
+    monkeypatch.setattr(jetracer.HostLink, "estop", lambda self: estops.append(1) or real_estop(self))
+    state = tmp_path / "train.pt"
+    jetracer.main(["train", "--total-steps", "500", "--gamepad", path, "--train-every", "40", "--gradient-steps", "20",
+                   "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST])  # fmt: skip
+    os.close(writer_fd)
+    assert estops  # e-stopped
+    saved = torch.load(state, weights_only=True)["counters"]
+    assert saved["step"] == 40 and saved["updates"] == 1  # the pause ended at its next read, and the car never drove again
+
+
 def test_a_lost_gamepad_raises_gamepad_lost_and_closes_quietly(tmp_path, monkeypatch):
     import errno
     import os
@@ -216,7 +260,7 @@ def test_training_e_stops_and_keeps_its_state_when_the_gamepad_is_lost(tmp_path,
 
     def poll(self):
         polls.append(len(estops))
-        if len(polls) > 60:  # unplugged after 60 control periods
+        if len(polls) > 60:  # unplugged after 60 reads: steps 0-57, and 2 in the pause at step 40 (one per gradient step)
             raise io.GamepadLost(f"gamepad {self.path!r} lost (No such device)")
 
     def estop(self):
@@ -231,7 +275,7 @@ def test_training_e_stops_and_keeps_its_state_when_the_gamepad_is_lost(tmp_path,
     jetracer.main(args)
     assert estops[0] == 61  # e-stopped on the poll that found the gamepad gone, before close()
     assert len(polls) == 61  # and no control period after it
-    assert torch.load(state, weights_only=True)["counters"]["step"] == 60  # saved on the way out, nothing lost
+    assert torch.load(state, weights_only=True)["counters"]["step"] == 58  # saved on the way out, nothing lost
     assert f"train: error: gamepad '{path}' lost (No such device); e-stopped" in capsys.readouterr().err
 
 
@@ -298,6 +342,23 @@ def test_a_camera_that_stops_delivering_ends_the_run(mode, tmp_path, monkeypatch
         assert torch.load(state, weights_only=True)["counters"]["step"] == 30  # saved on the way out
     assert len(reads) == 30 + 40  # 2 s of stale frames at 20 Hz, then the run ends
     assert f"{mode}: error: no fresh camera frame for 40 periods (2 s); stopping" in capsys.readouterr().err
+
+
+def test_the_e_stop_is_read_while_the_frames_are_stale(tmp_path, monkeypatch, capsys):
+    import os
+    import struct
+
+    path = fifo_gamepad(tmp_path, monkeypatch)
+    writer_fd = os.open(path, os.O_RDWR | os.O_NONBLOCK)
+    reads = stale_camera(monkeypatch, lambda n: n > 30)  # frozen after 30 periods: the car waits, stopped
+    tap = struct.Struct("<IhBB")
+    at_period(monkeypatch, 35, lambda session: os.write(writer_fd, tap.pack(10, 1, 1, 0) + tap.pack(40, 0, 1, 0)))
+    estops, real_estop = [], jetracer.HostLink.estop
+    monkeypatch.setattr(jetracer.HostLink, "estop", lambda self: estops.append(len(reads)) or real_estop(self))
+    rewards = jetracer.baseline(jetracer.Baseline(steps=300, gamepad=path, log_dir=str(tmp_path)))
+    os.close(writer_fd)
+    assert len(rewards) == 30 and estops == [35]  # e-stopped at the next read, not 2 s later as a lost camera
+    assert "no fresh camera frame" not in capsys.readouterr().err
 
 
 def test_a_stale_frame_ends_the_training_episode_for_the_baseline_too(tmp_path, monkeypatch):
