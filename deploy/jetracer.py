@@ -190,8 +190,8 @@ class CarSession:
 
         self.args, self.mode, self.period = args, mode, 1.0 / args.control_hz
         self.stop_requested = False
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, self._on_signal)
+        # Ctrl-C and SIGTERM e-stop the car while the session is open; close() puts the previous handlers back
+        self._previous_handlers = {sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
         self.mapping = ActionMapping(min_throttle=args.min_throttle, max_throttle=args.max_throttle)
         self.safety = SafetyFilter(self.mapping, args.max_steering_rate, self.period)
         self.world = self.camera = self.gamepad = self.writer = None
@@ -199,6 +199,7 @@ class CarSession:
             self.link = HostLink(args.port, send_hz=SENDS_PER_PERIOD * args.control_hz, command_timeout=2.0 * self.period,
                                  watchdog_ms=args.watchdog_ms, throttle_cap=args.max_throttle).start()  # fmt: skip
         except OSError as err:  # serial.SerialException is one
+            self._restore_signals()
             raise SystemExit(f"{mode}: error: cannot open the motor controller: {err}") from None
         try:  # a missing camera or gamepad ends the run before the car is armed, with the port closed
             self.world = SimWorld(self.link._port.controller, seed=args.seed) if args.port.startswith("mockjetracer") else None
@@ -343,6 +344,11 @@ class CarSession:
             self.gamepad.close()
         if self.writer is not None:
             self.writer.close()
+        self._restore_signals()
+
+    def _restore_signals(self) -> None:
+        for sig, handler in self._previous_handlers.items():
+            signal.signal(sig, handler)
 
 
 class CarSpaces:

@@ -475,6 +475,23 @@ def test_missing_hardware_is_a_one_line_error_before_the_car_is_armed(tmp_path, 
     assert not (tmp_path / "runs").exists()
 
 
+def test_a_session_puts_the_signal_handlers_back_when_it_closes(tmp_path):
+    import signal
+
+    def mine(*_):
+        pass
+
+    previous = {sig: signal.signal(sig, mine) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        jetracer.baseline(jetracer.Baseline(steps=5, log_dir=str(tmp_path)))
+        with pytest.raises(SystemExit, match="cannot open the motor controller"):
+            jetracer.baseline(jetracer.Baseline(steps=5, port="/dev/no_such_tty", log_dir=str(tmp_path)))
+        assert all(signal.getsignal(sig) is mine for sig in previous)  # not a closed session's e-stop
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
 def test_resuming_into_another_buffer_size_keeps_the_newest_transitions_in_order(tmp_path):
     hp = jetracer.car_jirl_defaults()
     hp.hidden_size = 8
