@@ -120,6 +120,16 @@ class Baseline(Common):
         return [*super().rules(), ("steps", self.steps >= 1, ">= 1")]
 
 
+# --jirl options the car's loop does not use: a value other than the car's default is refused, with the way to get it
+CAR_IGNORES = {
+    "seed": "use --seed", "total_timesteps": "use --total-steps", "exp_name": "the run is named under --log-dir",
+    "env_id": "the car is the env", "baseline": "the car's baseline is the lane follower, or a human on the gamepad",
+    "regret_estimator": "the car's regret uses --baseline-reward-per-step", "baseline_eval_episodes": "measure it with `baseline`",
+    "save_model": "the state is saved to --checkpoint", "eval_episodes": "drive the agent with `run`",
+    "capture_video": "not on the car", "guidance_fade_steps": "not on the car", "intervention_mode": "the gamepad's takeover intervenes",
+}  # fmt: skip
+
+
 def car_jirl_defaults() -> jirl.Args:
     # The paper's car settings (report Tables I-III): 64 units, batch 64, buffer 10k, K = 10, sigma^2 = 0.01;
     # guidance by time (the car's laps are no episodes to compare with the baseline's)
@@ -483,6 +493,10 @@ def train(args: Train) -> dict:
     hp = args.jirl
     if hp.guidance_schedule not in ("geometric", "linear"):
         raise SystemExit("train: error: --jirl.guidance-schedule must be geometric or linear on the car (guidance by time)")
+    defaults = car_jirl_defaults()
+    unused = [f"--jirl.{name.replace('_', '-')} ({hint})" for name, hint in CAR_IGNORES.items() if getattr(hp, name) != getattr(defaults, name)]
+    if unused:
+        raise SystemExit(f"train: error: no effect on the car: {'; '.join(unused)}")
     torch.manual_seed(args.seed)
     torch.set_num_threads(hp.torch_threads)
     sac = jirl.SoftActorCritic(OBS_SIZE, 2, hp)
@@ -588,6 +602,8 @@ def train(args: Train) -> dict:
             else:  # Alg. 3
                 c = jirl.guidance_c(hp.gate_c, step, guidance, hp.guidance_schedule)
                 rl_acts = gate.decide(jirl.squashed_log_prob(mean, log_std, baseline_action), jirl.divergence(mean, log_std, baseline_action), c)
+                if rl_acts and c == 0.0 and hp.deterministic_after_guidance:  # as the authors' car code did
+                    rl_action = np.tanh(mean).astype(np.float32)
             if previous is not None and previous[3] and not rl_acts and hp.use_switch_penalty:
                 with lock:
                     rb.add(previous[0], previous[2], hp.switch_penalty, obs, False)  # Sec. V.A
@@ -610,7 +626,7 @@ def train(args: Train) -> dict:
                 counters["paired_regret_per_step"] += max(0.0, car_reward(shadow_commands[1], shadow.off_track, session.mapping)
                                                          - car_reward(commands[1] if commands else 0.0, off_track, session.mapping))  # fmt: skip
             counters["step"] += 1
-            if step % 100 == 0:
+            if step % hp.log_every == 0:
                 session.log(step)
                 session.writer.add_scalar("charts/rl_control_fraction", sum(rl_control) / len(rl_control), step)
                 for key in ("fabricated_transitions", "control_switches", "baseline_regret_per_step", "paired_regret_per_step"):

@@ -1,5 +1,6 @@
 """deploy/jetracer.py: safety, and the run, baseline and train modes headless against the simulated car."""
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -454,6 +455,44 @@ def test_train_refuses_the_episode_based_schedule(tmp_path):
     out = subprocess.run([sys.executable, "-m", "deploy.jetracer", *args], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert out.returncode != 0 and "geometric or linear on the car" in out.stderr and "Traceback" not in out.stderr
     assert not (tmp_path / "t.pt").exists()
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (["--jirl.seed", "7"], "--jirl.seed (use --seed)"),
+        (["--jirl.total-timesteps", "500", "--jirl.guidance-fade-steps", "100"],
+         "--jirl.total-timesteps (use --total-steps); --jirl.guidance-fade-steps (not on the car)"),
+        (["--jirl.intervention-mode"], "--jirl.intervention-mode (the gamepad's takeover intervenes)"),
+    ],
+)  # fmt: skip
+def test_train_refuses_jirl_options_that_the_car_does_not_use(tmp_path, options, message):
+    with pytest.raises(SystemExit, match=f"^train: error: no effect on the car: {re.escape(message)}$"):
+        jetracer.main(["train", "--total-steps", "10", "--checkpoint", str(tmp_path / "t.pt"), "--log-dir", str(tmp_path), *options])
+    assert not list(tmp_path.iterdir())  # nothing written, the car never armed
+    assert set(jetracer.CAR_IGNORES) <= set(vars(jetracer.car_jirl_defaults()))  # every name is a --jirl option
+
+
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_train_acts_with_the_mean_after_guidance_when_asked(tmp_path, monkeypatch, deterministic):
+    observed, applied, logged = [], [], []
+    real_observe, real_act = jetracer.CarSession.observe, jetracer.CarSession.act
+    monkeypatch.setattr(jetracer.CarSession, "observe", lambda self: observed.append(real_observe(self)) or observed[-1])
+    monkeypatch.setattr(jetracer.CarSession, "act", lambda self, action: applied.append((observed[-1], action)) or real_act(self, action))
+    monkeypatch.setattr(jetracer.CarSession, "log", lambda self, step: logged.append(step))
+    args = ["train", "--total-steps", "120", "--jirl.guidance-steps", "60", "--jirl.learning-starts", "1000", "--jirl.hidden-size", "16",
+            "--jirl.log-every", "25", "--checkpoint", str(tmp_path / "t.pt"), "--log-dir", str(tmp_path)]  # fmt: skip
+    jetracer.main(args + (["--jirl.deterministic-after-guidance"] if deterministic else []))
+    hp = jetracer.car_jirl_defaults()
+    hp.hidden_size = 16
+    torch.manual_seed(0)  # train's --seed: no update ran, so the agent is the one it started with
+    actor = jetracer.jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, hp).actor
+    after = applied[60:]  # C = 0 from step 60: the agent acts at every step
+    with torch.no_grad():
+        means = torch.tanh(actor(torch.from_numpy(np.stack([obs for obs, _ in after])))[0]).numpy()
+    actions = np.stack([action for _, action in after])
+    assert np.allclose(actions, means, atol=1e-6) == deterministic  # else sampled around the mean
+    assert [step for step in logged if step < 120] == [0, 25, 50, 75, 100]  # --jirl.log-every is the car's too
 
 
 @pytest.mark.parametrize(
