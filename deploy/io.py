@@ -223,8 +223,8 @@ class Gamepad:
         missing = [f"{name} {i}" for name, i in buttons.items() if not 0 <= i < self.num_buttons]
         missing += [f"{name} {i}" for name, i in axes.items() if not 0 <= i < self.num_axes]
         if missing:
-            span = lambda n: f"0-{n - 1}" if n else "none"  # noqa: E731
-            raise ValueError(f"gamepad {self.path!r} has buttons {span(self.num_buttons)} and axes {span(self.num_axes)}: no {', '.join(missing)}")
+            buttons_span, axes_span = (f"0-{n - 1}" if n else "none" for n in (self.num_buttons, self.num_axes))
+            raise ValueError(f"gamepad {self.path!r} has buttons {buttons_span} and axes {axes_span}: no {', '.join(missing)}")
 
     def poll(self) -> None:
         """Read every pending event; GamepadLost if the device is gone (the kernel answers ENODEV)."""

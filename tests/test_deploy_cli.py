@@ -118,6 +118,14 @@ def fifo_gamepad(tmp_path, monkeypatch) -> str:
     return path
 
 
+def tap(button: int = 0) -> bytes:
+    """Joystick events of a tap: `button` down, and up again 30 ms later."""
+    import struct
+
+    event = struct.Struct("<IhBB")
+    return event.pack(10, 1, 1, button) + event.pack(40, 0, 1, button)
+
+
 def test_gamepad_events_estop_and_takeover(tmp_path, monkeypatch):
     import os
     import struct
@@ -188,14 +196,13 @@ def test_joystick_shape_asks_the_driver_for_its_axes_and_buttons(monkeypatch):
 
 def test_a_tap_of_the_e_stop_between_two_reads_still_counts(tmp_path, monkeypatch):
     import os
-    import struct
 
     from deploy.io import Gamepad
 
     path = fifo_gamepad(tmp_path, monkeypatch)
     writer_fd = os.open(path, os.O_RDWR | os.O_NONBLOCK)
-    pad, event = Gamepad(path), struct.Struct("<IhBB")
-    os.write(writer_fd, event.pack(10, 1, 1, 0) + event.pack(40, 0, 1, 0))  # button 0 down, up 30 ms later
+    pad = Gamepad(path)
+    os.write(writer_fd, tap(0))
     pad.poll()
     assert pad.buttons[0] is False  # the state a poll sees has it released ...
     assert pad.was_pressed(0) and not pad.was_pressed(0)  # ... the tap is kept until asked for, once
@@ -206,7 +213,6 @@ def test_a_tap_of_the_e_stop_between_two_reads_still_counts(tmp_path, monkeypatc
 
 def test_an_e_stop_tapped_during_a_training_pause_ends_the_run_there(tmp_path, monkeypatch):
     import os
-    import struct
 
     path = fifo_gamepad(tmp_path, monkeypatch)
     writer_fd = os.open(path, os.O_RDWR | os.O_NONBLOCK)
@@ -215,8 +221,7 @@ def test_an_e_stop_tapped_during_a_training_pause_ends_the_run_there(tmp_path, m
 
     def update(self, data, step):
         if step == 0:  # the first gradient step of the first pause: a person taps the e-stop
-            tap = struct.Struct("<IhBB")
-            os.write(writer_fd, tap.pack(10, 1, 1, 0) + tap.pack(40, 0, 1, 0))
+            os.write(writer_fd, tap(0))
         return real_update(self, data, step)
 
     monkeypatch.setattr(jetracer.jirl.SoftActorCritic, "update", update)
@@ -347,13 +352,11 @@ def test_a_camera_that_stops_delivering_ends_the_run(mode, tmp_path, monkeypatch
 
 def test_the_e_stop_is_read_while_the_frames_are_stale(tmp_path, monkeypatch, capsys):
     import os
-    import struct
 
     path = fifo_gamepad(tmp_path, monkeypatch)
     writer_fd = os.open(path, os.O_RDWR | os.O_NONBLOCK)
     reads = stale_camera(monkeypatch, lambda n: n > 30)  # frozen after 30 periods: the car waits, stopped
-    tap = struct.Struct("<IhBB")
-    at_period(monkeypatch, 35, lambda session: os.write(writer_fd, tap.pack(10, 1, 1, 0) + tap.pack(40, 0, 1, 0)))
+    at_period(monkeypatch, 35, lambda session: os.write(writer_fd, tap(0)))
     estops, real_estop = [], jetracer.HostLink.estop
     monkeypatch.setattr(jetracer.HostLink, "estop", lambda self: estops.append(len(reads)) or real_estop(self))
     rewards = jetracer.baseline(jetracer.Baseline(steps=300, gamepad=path, log_dir=str(tmp_path)))
