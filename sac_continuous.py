@@ -132,6 +132,10 @@ def make_env(env_id: str, seed: int, capture_video: bool = False, run_name: str 
     if not isinstance(env.observation_space, gym.spaces.Box) or len(env.observation_space.shape) != 1:
         raise ValueError(f"{env_id} has observations {env.observation_space}; this script needs a flat Box")
     if capture_video:
+        try:  # RecordVideo needs moviepy, and would create videos/ before saying so
+            import moviepy  # noqa: F401
+        except ImportError:
+            raise ValueError("--capture-video needs moviepy (pip install moviepy)") from None
         env = gym.wrappers.RecordVideo(env, f"videos/{run_name}")
     return env
 

@@ -7,12 +7,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from conftest import ROOT
+from conftest import ROOT, load_script
 
 TINY = ["--hidden-size", "32", "--batch-size", "32", "--log-every", "50"]
 
@@ -138,3 +140,31 @@ def test_script_copied_alone_runs_with_a_user_baseline(tmp_path):
     assert "baseline regret estimator: paired" in out.stdout
     (run_dir,) = (tmp_path / "runs").iterdir()
     assert "charts/baseline_regret_per_step" in scalars(run_dir)
+
+
+def test_capture_video_records_the_training_episodes(tmp_path, sac):
+    args = ["--total-timesteps", "200", "--learning-starts", "100", "--capture-video", "--baseline-eval-episodes", "1", *TINY]
+    out = run_script(ROOT / "sac_continuous.py", args, tmp_path)
+    assert out.returncode == 0, out.stderr
+    (video,) = (tmp_path / "videos").glob("Pendulum-v1__sac_continuous__1__*/rl-video-episode-0.mp4")
+    capture, frames = cv2.VideoCapture(str(video)), []
+    while (frame := capture.read()[1]) is not None:
+        frames.append(frame[..., ::-1].astype(float))  # BGR -> RGB
+    assert len(frames) == 200 and frames[0].shape == (500, 500, 3)
+    # the first frame is training episode 0's start, env.reset(seed=1), not another start
+    renders = []
+    for seed in (1, 2, 3, 4, 5):
+        env = gym.make("Pendulum-v1", render_mode="rgb_array")
+        env.reset(seed=seed)
+        renders.append(env.render().astype(float))
+    errors = [np.abs(frames[0] - render).mean() for render in renders]
+    assert errors[0] < 0.5 < min(errors[1:]), errors
+
+
+@pytest.mark.parametrize("script", ["sac_continuous", "jirl_sac_continuous", "ppo_il", "trpo_il"])
+def test_capture_video_without_moviepy_is_a_clear_error_that_writes_nothing(tmp_path, monkeypatch, script):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setitem(sys.modules, "moviepy", None)  # `import moviepy` now raises ImportError
+    with pytest.raises(ValueError, match=r"--capture-video needs moviepy \(pip install moviepy\)"):
+        load_script(script).make_env("Pendulum-v1", 1, capture_video=True, run_name="run")
+    assert not (tmp_path / "videos").exists()
