@@ -3,6 +3,7 @@ ratios per repetition), an earlier revision of a script, a script loaded as a mo
 
 from __future__ import annotations
 
+import argparse
 import importlib.util
 import re
 import sys
@@ -21,10 +22,24 @@ def timed(cmd: list[str], workdir: Path) -> tuple[float, float]:
     """Wall-clock seconds of one process, start to exit (imports included), and the last `SPS: x` it
     printed (its training loop's own rate, imports and setup excluded; NaN if it printed none)."""
     start = time.perf_counter()
-    result = subprocess.run(cmd, check=True, cwd=workdir, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    result = checked(subprocess.run(cmd, cwd=workdir, capture_output=True, text=True))
     seconds = time.perf_counter() - start
     printed = re.findall(r"^SPS: ([0-9.]+)$", result.stdout, flags=re.MULTILINE)
     return seconds, float(printed[-1]) if printed else float("nan")
+
+
+def checked(result: subprocess.CompletedProcess) -> subprocess.CompletedProcess:
+    """The finished process, or a stop that shows why it failed (the end of its stderr)."""
+    if result.returncode != 0:
+        tail = "\n".join(result.stderr.strip().splitlines()[-15:])
+        raise SystemExit(f"{' '.join(map(str, result.args))} exited with {result.returncode}:\n{tail}")
+    return result
+
+
+def require(parser: argparse.ArgumentParser, *modules: str) -> None:
+    """One line, before anything runs, when a library the comparison needs is not installed."""
+    if missing := [module for module in modules if importlib.util.find_spec(module) is None]:
+        parser.error(f"needs {', '.join(missing)}: pip install -r benchmarks/requirements.txt")
 
 
 def measure(command: Callable[[str, int], list[str]], names: Sequence[str], steps: int, repeats: int, workdir: Path) -> tuple[dict[str, list[float]], dict[str, list[float]]]:

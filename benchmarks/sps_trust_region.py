@@ -15,7 +15,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from side_by_side import compare
+from side_by_side import compare, require
 
 ROOT = Path(__file__).resolve().parent.parent
 # The tuned settings our scripts resolve for each env (see README), spelled for SB3 with one env.
@@ -63,6 +63,7 @@ def main() -> None:
     minimums = {"--steps": (args.steps, 1), "--repeats": (args.repeats, 1)}
     if too_small := [f"{flag} must be at least {low}" for flag, (value, low) in minimums.items() if not value >= low]:
         parser.error("; ".join(too_small))
+    require(parser, "stable_baselines3", *(["sb3_contrib"] if "trpo" in args.algos else []))
     args.workdir.mkdir(parents=True, exist_ok=True)
     print(f"{args.env_id}, {args.steps} steps, 1 thread")
     print("| algorithm | ours SPS (median) | SB3 SPS (median) | ratio ours/SB3 (median of pairs) | pairs |")

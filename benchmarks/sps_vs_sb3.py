@@ -19,7 +19,7 @@ import sys
 import time
 from pathlib import Path
 
-from side_by_side import measure, ratio_cell, script_at
+from side_by_side import measure, ratio_cell, require, script_at
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -75,6 +75,7 @@ def main() -> None:
     minimums = {"--widths": (min(args.widths), 1), "--steps": (args.steps, 1), "--repeats": (args.repeats, 1), "--learning-starts": (args.learning_starts, 0)}
     if too_small := [f"{flag} must be at least {low}" for flag, (value, low) in minimums.items() if not value >= low]:
         parser.error("; ".join(too_small))
+    require(parser, "stable_baselines3")
     args.workdir.mkdir(parents=True, exist_ok=True)
     names = ["sac_continuous", "jirl_sac_continuous", "sb3"]
     if args.before:

@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from side_by_side import load_module, script_at
+from side_by_side import checked, load_module, require, script_at
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -82,8 +82,8 @@ def sb3_worker(width: int, steps: int) -> float:
 
 def run(impl: str, width: int, steps: int, workdir: Path) -> float:
     script = {"sac": str(ROOT / "sac_continuous.py"), "sac_before": str(workdir / "sac_before.py")}.get(impl, "")
-    out = subprocess.run([sys.executable, __file__, "--worker", impl, script, str(width), str(steps)],
-                         check=True, capture_output=True, text=True).stdout  # fmt: skip
+    out = checked(subprocess.run([sys.executable, __file__, "--worker", impl, script, str(width), str(steps)],
+                                 capture_output=True, text=True)).stdout  # fmt: skip
     return float(out.strip().splitlines()[-1]) * 1000.0
 
 
@@ -102,6 +102,7 @@ def main() -> None:
     minimums = {"--widths": (min(args.widths), 1), "--steps": (args.steps, 1), "--repeats": (args.repeats, 1)}
     if too_small := [f"{flag} must be at least {low}" for flag, (value, low) in minimums.items() if not value >= low]:
         parser.error("; ".join(too_small))
+    require(parser, "stable_baselines3")
     args.workdir.mkdir(parents=True, exist_ok=True)
     names = ["sac", "sb3"]
     if args.before:
