@@ -142,7 +142,7 @@ def test_script_copied_alone_runs_with_a_user_baseline(tmp_path):
     assert "charts/baseline_regret_per_step" in scalars(run_dir)
 
 
-def test_capture_video_records_the_training_episodes(tmp_path, sac):
+def test_capture_video_records_the_training_episodes(tmp_path):
     args = ["--total-timesteps", "200", "--learning-starts", "100", "--capture-video", "--baseline-eval-episodes", "1", *TINY]
     out = run_script(ROOT / "sac_continuous.py", args, tmp_path)
     assert out.returncode == 0, out.stderr
@@ -150,6 +150,7 @@ def test_capture_video_records_the_training_episodes(tmp_path, sac):
     capture, frames = cv2.VideoCapture(str(video)), []
     while (frame := capture.read()[1]) is not None:
         frames.append(frame[..., ::-1].astype(float))  # BGR -> RGB
+    capture.release()
     assert len(frames) == 200 and frames[0].shape == (500, 500, 3)
     # the first frame is training episode 0's start, env.reset(seed=1), not another start
     renders = []
@@ -157,6 +158,7 @@ def test_capture_video_records_the_training_episodes(tmp_path, sac):
         env = gym.make("Pendulum-v1", render_mode="rgb_array")
         env.reset(seed=seed)
         renders.append(env.render().astype(float))
+        env.close()
     errors = [np.abs(frames[0] - render).mean() for render in renders]
     assert errors[0] < 0.5 < min(errors[1:]), errors
 
