@@ -67,6 +67,7 @@ def test_user_baseline_by_module_and_function(tmp_path, monkeypatch):
         "def zero(obs):\n    return np.zeros(1, dtype=np.float32)\n"
         "class Counting:\n    def __init__(self):\n        self.calls = 0\n"
         "    def __call__(self, obs):\n        self.calls += 1\n        return np.ones(1, dtype=np.float32)\n"
+        "GAIN = 2.0\n"
     )
     monkeypatch.syspath_prepend(str(tmp_path))
     assert get_baseline("Pendulum-v1", "my_controller:zero")(np.zeros(3))[0] == 0.0
@@ -79,6 +80,8 @@ def test_user_baseline_by_module_and_function(tmp_path, monkeypatch):
         load_baseline("my_controller:missing")
     with pytest.raises(ValueError, match="cannot import"):
         load_baseline("no_such_module_xyz:f")
+    with pytest.raises(ValueError, match="'my_controller:GAIN' is not callable"):
+        load_baseline("my_controller:GAIN")
 
 
 def test_make_env_errors_and_lazy_pybullet_registration():

@@ -58,7 +58,18 @@ def test_bad_files_give_clear_errors_and_lose_nothing(tmp_path):
         load_policy(other)
     with pytest.raises(ValueError, match="not a sac_continuous.py checkpoint"):
         export(other, tmp_path / "out.pt")
-    assert corrupt.exists() and other.exists() and not (tmp_path / "out.pt").exists()
+    a_list = tmp_path / "list.pt"
+    torch.save([1, 2], a_list)
+    with pytest.raises(ValueError, match="is not a policy weights file"):
+        load_policy(a_list)
+    resized = tmp_path / "resized.pt"
+    weights = torch.load(WEIGHTS, weights_only=True)
+    torch.save({**weights, "hidden_size": weights["hidden_size"] // 2}, resized)
+    with pytest.raises(ValueError, match="the weights do not fit the stated sizes"):
+        load_policy(resized)
+    with pytest.raises(FileNotFoundError):
+        load_policy(tmp_path / "missing.pt")
+    assert corrupt.exists() and other.exists() and resized.exists() and not (tmp_path / "out.pt").exists()
 
 
 def test_export_round_trip_from_a_sac_checkpoint(tmp_path):
