@@ -121,6 +121,25 @@ def test_throttle_cap_estop_latch_and_nack_reasons():
     assert info.type == p.INFO and info.fields[0] == p.VERSION
 
 
+
+@pytest.mark.parametrize(
+    "version, kind, length, payload, reason",
+    [
+        (2, p.DRIVE, 4, b"\x00\x00\xf4\x01", p.BAD_VERSION),  # a well-formed DRIVE from a newer host
+        (p.VERSION, 0x7F, 0, b"", p.UNKNOWN_TYPE),  # a type the protocol does not define
+        (p.VERSION, p.DRIVE, 3, b"\x00\x00\xf4\x01", p.BAD_LENGTH),  # the length byte disagrees with the payload
+    ],
+)
+def test_a_frame_with_a_good_crc_but_a_bad_header_is_refused_and_changes_nothing(version, kind, length, payload, reason):
+    c = MockController()
+    send(c, p.Message(p.ARM, 1, (250, 600)), 0.0)
+    send(c, p.Message(p.DRIVE, 2, (100, 300)), 0.01)
+    body = bytes([version, kind, 9, length]) + payload
+    c.receive(p.cobs.encode(body + p.crc16(body).to_bytes(2, "little")) + b"\x00", 0.02)
+    (nack,) = frames(c)
+    assert nack.type == p.NACK and nack.fields == (9, kind, reason)
+    assert c.armed and (c.steering, c.throttle) == (0.1, 0.3)
+
 @pytest.fixture
 def mock_link():
     register_url_scheme()
