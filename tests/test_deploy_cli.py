@@ -503,6 +503,7 @@ def test_train_acts_with_the_mean_after_guidance_when_asked(tmp_path, monkeypatc
     [
         (["--camera", "file:no_such_video.mp4"], "baseline: error: cannot open camera 'no_such_video.mp4'"),
         (["--camera", "usb:left"], "usb:N takes a device number N"),
+        (["--camera", "webcam"], "baseline: error: unknown camera 'webcam': use csi, usb:N, file:PATH or sim"),
         (["--gamepad", "/dev/input/no_such_js"], "cannot open gamepad '/dev/input/no_such_js': No such file or directory"),
         (["--gamepad", "/dev/null"], "baseline: error: '/dev/null' is not a joystick device (/dev/input/jsN)"),
         (["--gamepad", "README.md"], "baseline: error: 'README.md' is not a joystick device (/dev/input/jsN)"),
