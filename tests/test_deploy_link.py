@@ -80,6 +80,12 @@ def send(controller, message, now):
     return frames(controller)
 
 
+def send_body(controller, body: bytes, now):
+    """Frame a raw body with a good CRC, whatever its header says (p.encode only writes valid ones)."""
+    controller.receive(p.cobs.encode(body + p.crc16(body).to_bytes(2, "little")) + p.DELIMITER, now)
+    return frames(controller)
+
+
 def test_watchdog_trips_exactly_after_the_armed_period():
     c = MockController(now=0.0)
     (ack,) = send(c, p.Message(p.ARM, 1, (250, 600)), 0.0)
@@ -113,9 +119,7 @@ def test_throttle_cap_estop_latch_and_nack_reasons():
     assert c.armed and not c.estop_latched
     (nack,) = send(c, p.Message(p.TELEMETRY, 8, (0, 0, 0, 0, 0, 0)), 0.05)
     assert nack.fields == (8, p.TELEMETRY, p.UNKNOWN_TYPE)
-    body = bytes([p.VERSION, p.DRIVE, 9, 1, 7])  # DRIVE with a 1-byte payload, good CRC
-    c.receive(p.cobs.encode(body + p.crc16(body).to_bytes(2, "little")) + b"\x00", 0.06)
-    (nack,) = frames(c)
+    (nack,) = send_body(c, bytes([p.VERSION, p.DRIVE, 9, 1, 7]), 0.06)  # DRIVE with a 1-byte payload
     assert nack.fields == (9, p.DRIVE, p.BAD_LENGTH)
     (info,) = send(c, p.Message(p.HELLO, 10), 0.07)
     assert info.type == p.INFO and info.fields[0] == p.VERSION
@@ -134,9 +138,7 @@ def test_a_frame_with_a_good_crc_but_a_bad_header_is_refused_and_changes_nothing
     c = MockController()
     send(c, p.Message(p.ARM, 1, (250, 600)), 0.0)
     send(c, p.Message(p.DRIVE, 2, (100, 300)), 0.01)
-    body = bytes([version, kind, 9, length]) + payload
-    c.receive(p.cobs.encode(body + p.crc16(body).to_bytes(2, "little")) + b"\x00", 0.02)
-    (nack,) = frames(c)
+    (nack,) = send_body(c, bytes([version, kind, 9, length]) + payload, 0.02)
     assert nack.type == p.NACK and nack.fields == (9, kind, reason)
     assert c.armed and (c.steering, c.throttle) == (0.1, 0.3)
 
