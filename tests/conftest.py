@@ -28,3 +28,12 @@ def load_script(name: str):
 @pytest.fixture(scope="session")
 def sac():
     return load_script("sac_continuous")
+
+
+def small_checkpoint(sac, path: Path):
+    """A 16-unit Pendulum-v1 checkpoint written by sac_continuous.py's save_checkpoint; returns its actor."""
+    env = sac.make_env("Pendulum-v1", 0)
+    actor, qf = sac.Actor(3, 1, 16), sac.SoftQNetwork(3, 1, 16)
+    sac.save_checkpoint(str(path), "Pendulum-v1", env, actor, qf, sac.Args(hidden_size=16))
+    env.close()
+    return actor

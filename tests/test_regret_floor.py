@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import ROOT
+from conftest import ROOT, small_checkpoint
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import regret_floor  # noqa: E402
@@ -58,13 +58,6 @@ def test_a_weaker_policy_against_an_independent_computation():
 def test_the_floor_over_a_budget():
     floor = regret_floor.Floor(-150.0, -230.0, 2.0, 10.0, 0.4, 200.0)
     assert floor.over(280_000) == pytest.approx((2_800.0, 14_000.0))
-
-
-def small_checkpoint(sac, path):
-    env = sac.make_env("Pendulum-v1", 0)
-    actor, qf = sac.Actor(3, 1, 16), sac.SoftQNetwork(3, 1, 16)
-    sac.save_checkpoint(str(path), "Pendulum-v1", env, actor, qf, sac.Args(hidden_size=16))
-    return actor
 
 
 def test_a_checkpoint_acts_with_its_mean_action_in_env_units(tmp_path, sac):

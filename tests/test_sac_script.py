@@ -14,7 +14,7 @@ import pytest
 import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from conftest import ROOT, load_script
+from conftest import ROOT, load_script, small_checkpoint
 
 TINY = ["--hidden-size", "32", "--batch-size", "32", "--log-every", "50"]
 
@@ -175,9 +175,8 @@ def test_capture_video_without_moviepy_is_a_clear_error_that_writes_nothing(tmp_
 def test_the_readmes_saved_policy_snippet_runs(tmp_path, sac):
     section = (ROOT / "README.md").read_text().split("### Using a saved policy", 1)[1]
     code = section.split("```python\n", 1)[1].split("```", 1)[0]
-    env = sac.make_env("Pendulum-v1", 0)
     path = tmp_path / "model.cleanrl_model"
-    sac.save_checkpoint(str(path), "Pendulum-v1", env, sac.Actor(3, 1, 16), sac.SoftQNetwork(3, 1, 16), sac.Args(hidden_size=16))
+    small_checkpoint(sac, path)
     code = code.replace("runs/RUN_NAME/jirl_sac_continuous.cleanrl_model", str(path)).replace('render_mode="human"', "render_mode=None")
     assert str(path) in code and "render_mode=None" in code, "the snippet changed: update this test"
     out = subprocess.run([sys.executable, "-c", code + "print(obs.shape, float(reward))"], cwd=ROOT, capture_output=True, text=True)
