@@ -1,0 +1,80 @@
+"""The scripts are kept as near-copies: `diff sac_continuous.py jirl_sac_continuous.py` shows JIRL only,
+`diff ppo_il.py trpo_il.py` shows TRPO only, and the regret code every script repeats is the same text in
+each. A change made to one copy only fails here."""
+
+import ast
+
+import numpy as np
+import pytest
+
+from conftest import ROOT, load_script
+
+
+def top_level(name: str) -> dict[str, str]:
+    """Source text of every top-level function, class and single-name assignment of ROOT/name.py."""
+    source = (ROOT / f"{name}.py").read_text()
+    found = {}
+    for node in ast.parse(source).body:
+        if isinstance(node, (ast.FunctionDef, ast.ClassDef)):
+            found[node.name] = ast.get_source_segment(source, node)
+        elif isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name):
+            found[node.targets[0].id] = ast.get_source_segment(source, node)
+    return found
+
+
+SAC, JIRL = top_level("sac_continuous"), top_level("jirl_sac_continuous")
+JIRL_CHANGES = {"Args", "ReplayBuffer"}  # the two shared definitions JIRL extends, checked below
+REGRET_CODE = ["EVAL_SEED_OFFSET", "load_baseline", "check_baseline_action", "baseline_rollout", "paired_regret", "unpaired_regret", "load_checkpoint"]
+
+
+def test_jirl_repeats_every_sac_definition_it_does_not_extend():
+    assert set(SAC) <= set(JIRL), f"missing from the JIRL script: {sorted(set(SAC) - set(JIRL))}"
+    drifted = [name for name in SAC if name not in JIRL_CHANGES and SAC[name] != JIRL[name]]
+    assert drifted == [], f"edit these in both scripts: {drifted}"
+
+
+def args_fields(name: str) -> dict[str, str]:
+    """Each field of the script's Args as its source line (name, type, default) and its docstring."""
+    source = (ROOT / f"{name}.py").read_text()
+    body = next(n for n in ast.parse(source).body if isinstance(n, ast.ClassDef) and n.name == "Args").body
+    return {
+        node.target.id: ast.get_source_segment(source, node) + "\n" + ast.get_source_segment(source, doc)
+        for node, doc in zip(body, body[1:])
+        if isinstance(node, ast.AnnAssign) and isinstance(doc, ast.Expr)
+    }
+
+
+def test_jirl_args_keep_every_sac_field_default_and_docstring():
+    sac_fields, jirl_fields = args_fields("sac_continuous"), args_fields("jirl_sac_continuous")
+    own = {"exp_name", "learning_starts"}  # the script's name; JIRL acts with the gate before learning starts
+    assert set(sac_fields) <= set(jirl_fields)
+    drifted = [name for name in sac_fields if name not in own and sac_fields[name] != jirl_fields[name]]
+    assert drifted == [], f"edit these Args fields in both scripts: {drifted}"
+    assert {"gate_c", "gate_k", "penalty_sigma2", "guidance_steps"} <= set(jirl_fields) - set(sac_fields)
+
+
+def test_jirl_buffer_samples_as_sacs_when_guidance_rows_weigh_fully():
+    sac, jirl = load_script("sac_continuous"), load_script("jirl_sac_continuous")
+    buffers = [sac.ReplayBuffer(50, 3, 1, seed=7), jirl.ReplayBuffer(50, 3, 1, seed=7)]
+    rng = np.random.default_rng(0)
+    for i in range(80):  # wraps around the capacity
+        row = rng.normal(size=3), rng.uniform(-1, 1, size=1), float(rng.normal()), rng.normal(size=3), bool(i % 9 == 0)
+        buffers[0].add(*row)
+        buffers[1].add(*row, guidance=i % 2 == 0)
+    for a, b in zip(buffers[0].sample(32), buffers[1].sample(32, guidance_weight=1.0)):
+        assert a.equal(b)
+
+
+@pytest.mark.parametrize("script", ["jirl_sac_continuous", "ppo_il", "trpo_il"])
+def test_every_script_repeats_the_regret_code_word_for_word(script):
+    other = top_level(script)
+    drifted = [name for name in REGRET_CODE if other.get(name) != SAC[name]]
+    assert drifted == [], f"{script}.py differs from sac_continuous.py in {drifted}"
+
+
+def test_trpo_il_repeats_every_ppo_il_definition_but_its_settings():
+    ppo, trpo = top_level("ppo_il"), top_level("trpo_il")
+    settings = {"TUNED", "DEFAULTS", "Args"}  # each method's own hyperparameters
+    assert set(ppo) <= set(trpo), f"missing from trpo_il.py: {sorted(set(ppo) - set(trpo))}"
+    drifted = [name for name in ppo if name not in settings and ppo[name] != trpo[name]]
+    assert drifted == [], f"edit these in both scripts: {drifted}"
