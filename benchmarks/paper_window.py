@@ -150,6 +150,7 @@ def main(argv: Optional[list[str]] = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--jirl", type=Path, required=True, help="workdir of the JIRL runs (benchmarks/learning.py --workdir)")
     parser.add_argument("--sac", type=Path, required=True, help="workdir of the SAC runs on the same seeds")
+    parser.add_argument("--seeds", type=int, nargs="+", help="only these seeds (default: every seed with runs on both sides)")
     parser.add_argument("--episodes", type=int, default=20, help="episodes in each side's trailing mean return")
     parser.add_argument("--tolerance", type=float, default=0.05, help="JIRL's mean may fall this fraction of |SAC's| short")
     args = parser.parse_args(argv)
@@ -158,7 +159,7 @@ def main(argv: Optional[list[str]] = None) -> None:
     if not 0.0 <= args.tolerance < math.inf:
         parser.error(f"--tolerance must be >= 0, got {args.tolerance}")
     jirl_runs, sac_runs = runs_by_seed(args.jirl), runs_by_seed(args.sac)
-    seeds = sorted(set(jirl_runs) & set(sac_runs))
+    seeds = sorted(set(jirl_runs) & set(sac_runs) & set(args.seeds or jirl_runs))
     if not seeds:
         raise SystemExit(f"paper_window: error: no seed has both a JIRL run ({sorted(jirl_runs)}) and a SAC run ({sorted(sac_runs)})")
     windows = []

@@ -97,6 +97,10 @@ def test_the_command_reads_the_logs_and_pairs_the_seeds(tmp_path, capsys):
     assert "| 1 | 2,000 | 2,200 | 0 | 0 | 110 | 110 | 1,100 | 3,000 | 10.0× | 27.3× | 300 | 10.0× |" in out
     assert "| 1 | 2,000 | 2,200 | 0 | 0 | 330 | 330 | 3,300 | 9,000 | 10.0× | 27.3× | 900 | 10.0× |" in out
     assert "| 2 |" not in out
+    write_run(tmp_path / "sac", "Pendulum-v1__sac__2__100", sac)
+    paper_window.main(["--jirl", str(tmp_path / "jirl"), "--sac", str(tmp_path / "sac"), "--episodes", "2", "--seeds", "2"])
+    out = capsys.readouterr().out
+    assert "| 2 | 2,000 |" in out and "| 1 |" not in out
 
 
 def test_the_command_refuses_bad_input(tmp_path):
