@@ -12,7 +12,9 @@ for each seed, the end of that window:
 - T_end: the first JIRL episode end at or after T_100 where the mean return of JIRL's last
   `--episodes` episodes is at least SAC's over its last `--episodes` episodes ended by then, less
   `--tolerance` of |SAC's|. "Never" when that does not happen within the run; the window is then the
-  whole run.
+  whole run. Where JIRL starts above SAC (its guided returns are the baseline's while SAC's are still
+  poor), that first episode can come at the hand-over itself; `--sustained` reads "similar" as the
+  first episode from which JIRL stays similar to SAC to the end of the run.
 
 It prints JIRL's regret at T_end split into Table I's phases, SAC's regret over the same steps and
 over its whole run, and the ratios, per seed and as medians, in both regret forms.
@@ -61,19 +63,29 @@ def trailing_mean(returns: Series, step: int, episodes: int) -> float:
     return statistics.fmean(window) if window else math.nan
 
 
-def window_end(jirl_returns: Series, sac_returns: Series, t_100: Optional[int], episodes: int, tolerance: float) -> Optional[int]:
+def window_end(
+    jirl_returns: Series, sac_returns: Series, t_100: Optional[int], episodes: int, tolerance: float, sustained: bool = False
+) -> Optional[int]:
     """T_end: the first JIRL episode end at or after T_100 where JIRL's recent mean return is within
     `tolerance` of |SAC's| below SAC's recent mean (or above it); None if it never is, or if the agent
-    never held full control."""
+    never held full control. With `sustained`, the first such episode from which JIRL stays similar to
+    the end of the run (None if its last episode falls short)."""
     if t_100 is None:
         return None
-    for step, _ in jirl_returns:
-        if step < t_100:
-            continue
-        sac_mean = trailing_mean(sac_returns, step, episodes)
-        if trailing_mean(jirl_returns, step, episodes) >= sac_mean - tolerance * abs(sac_mean):
-            return step
-    return None
+
+    def similar(step: int) -> bool:
+        sac_mean = trailing_mean(sac_returns, step, episodes)  # NaN before SAC's first episode: not similar
+        return trailing_mean(jirl_returns, step, episodes) >= sac_mean - tolerance * abs(sac_mean)
+
+    steps = [step for step, _ in jirl_returns if step >= t_100]
+    if not sustained:
+        return next((step for step in steps if similar(step)), None)
+    end = None
+    for step in reversed(steps):  # back from the run's end to the last episode that fell short
+        if not similar(step):
+            break
+        end = step
+    return end
 
 
 @dataclass(frozen=True)
@@ -89,10 +101,10 @@ class Window:
     jirl_whole: tuple[float, float]
 
 
-def measure(seed: int, jirl: dict[str, Series], sac: dict[str, Series], episodes: int, tolerance: float) -> Window:
+def measure(seed: int, jirl: dict[str, Series], sac: dict[str, Series], episodes: int, tolerance: float, sustained: bool = False) -> Window:
     """The window of one seed from the two runs' scalars (tag -> series)."""
     t_100 = first_full_control(jirl["charts/rl_control_fraction"])
-    t_end = window_end(jirl["charts/episodic_return"], sac["charts/episodic_return"], t_100, episodes, tolerance)
+    t_end = window_end(jirl["charts/episodic_return"], sac["charts/episodic_return"], t_100, episodes, tolerance, sustained)
     last_step = jirl["charts/episodic_return"][-1][0]
     end = last_step if t_end is None else t_end
     forms = FORMS.values()
@@ -153,6 +165,7 @@ def main(argv: Optional[list[str]] = None) -> None:
     parser.add_argument("--seeds", type=int, nargs="+", help="only these seeds (default: every seed with runs on both sides)")
     parser.add_argument("--episodes", type=int, default=20, help="episodes in each side's trailing mean return")
     parser.add_argument("--tolerance", type=float, default=0.05, help="JIRL's mean may fall this fraction of |SAC's| short")
+    parser.add_argument("--sustained", action="store_true", help="the window ends where JIRL becomes similar to SAC for the rest of the run")
     args = parser.parse_args(argv)
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
@@ -169,8 +182,9 @@ def main(argv: Optional[list[str]] = None) -> None:
             missing = [tag for tag in tags if not scalars.get(tag)]
             if missing:
                 raise SystemExit(f"paper_window: error: {run} logged no {', '.join(missing)} (a run with the regret estimator off, or not finished?)")
-        windows.append(measure(seed, jirl, sac, args.episodes, args.tolerance))
-    print(f"similar: JIRL's mean return over its last {args.episodes} episodes >= SAC's less {args.tolerance:.0%} of |SAC's|")
+        windows.append(measure(seed, jirl, sac, args.episodes, args.tolerance, args.sustained))
+    until = ", from T_end to the end of the run" if args.sustained else ""
+    print(f"similar: JIRL's mean return over its last {args.episodes} episodes >= SAC's less {args.tolerance:.0%} of |SAC's|{until}")
     print(report(windows))
 
 

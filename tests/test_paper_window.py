@@ -44,6 +44,19 @@ def test_the_window_ends_where_jirl_catches_up():
     assert paper_window.window_end([(s, -500.0) for s, _ in JIRL], SAC, t_100=0, episodes=2, tolerance=0.1) is None
 
 
+def test_a_sustained_window_ends_where_jirl_stays_similar():
+    # JIRL above SAC, then 5 episodes below, then above again to the end
+    jirl = [(200 * i, r) for i, r in enumerate([-100.0] * 5 + [-300.0] * 5 + [-150.0] * 5, 1)]
+    assert paper_window.window_end(jirl, SAC, t_100=0, episodes=1, tolerance=0.0) == 200
+    assert paper_window.window_end(jirl, SAC, t_100=0, episodes=1, tolerance=0.0, sustained=True) == 200 * 11
+    # 2-episode means: episode 11 still averages -225 with episode 10, so it ends one episode later
+    assert paper_window.window_end(jirl, SAC, t_100=0, episodes=2, tolerance=0.0, sustained=True) == 200 * 12
+    # a hand-over after the recovery: the window ends at the first episode after it, as without
+    assert paper_window.window_end(jirl, SAC, t_100=2_500, episodes=1, tolerance=0.0, sustained=True) == 2_600
+    # the run's last episode falls short: never
+    assert paper_window.window_end([*jirl, (3_200, -400.0)], SAC, t_100=0, episodes=1, tolerance=0.0, sustained=True) is None
+
+
 def scalars(returns, control, regret, phases=None):
     """Tag -> series as read_scalars returns them; regret per step is the episode form times 3."""
     out = {
@@ -101,6 +114,10 @@ def test_the_command_reads_the_logs_and_pairs_the_seeds(tmp_path, capsys):
     paper_window.main(["--jirl", str(tmp_path / "jirl"), "--sac", str(tmp_path / "sac"), "--episodes", "2", "--seeds", "2"])
     out = capsys.readouterr().out
     assert "| 2 | 2,000 |" in out and "| 1 |" not in out
+    # JIRL stays similar from episode 11 on, so the sustained window ends where the first one does
+    paper_window.main(["--jirl", str(tmp_path / "jirl"), "--sac", str(tmp_path / "sac"), "--episodes", "2", "--tolerance", "0", "--seeds", "1", "--sustained"])
+    out = capsys.readouterr().out
+    assert "to the end of the run" in out and "| 1 | 2,000 | 2,200 | 0 | 0 | 110 | 110 | 1,100 |" in out
 
 
 def test_the_command_refuses_bad_input(tmp_path):
