@@ -12,8 +12,8 @@ for each seed, the end of that window:
 - T_end: the first JIRL episode end at or after T_100 where the mean return of JIRL's last
   `--episodes` episodes is at least SAC's over its last `--episodes` episodes ended by then, less
   `--tolerance` of |SAC's|. "Never" when that does not happen within the run; the window is then the
-  whole run. Where JIRL starts above SAC (its guided returns are the baseline's while SAC's are still
-  poor), that first episode can come at the hand-over itself; `--sustained` reads "similar" as the
+  whole run. Where JIRL starts above SAC (its guided returns are at the baseline's level while SAC's
+  are still poor), that first episode can come at the hand-over itself; `--sustained` reads "similar" as the
   first episode from which JIRL stays similar to SAC to the end of the run.
 
 It prints JIRL's regret at T_end split into Table I's phases, SAC's regret over the same steps and
