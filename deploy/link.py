@@ -182,8 +182,13 @@ class HostLink:
         return self._armed
 
     def drive(self, steering: float, throttle: float) -> None:
-        """Set the command the send loop will send while it is fresh."""
-        self._command = (float(steering), float(throttle), self._clock())
+        """Set the command the send loop will send while it is fresh. A non-finite value stops the car
+        (STOP from the next send) and raises ValueError: no earlier command is sent after it."""
+        steering, throttle = float(steering), float(throttle)
+        if not (math.isfinite(steering) and math.isfinite(throttle)):
+            self._command = None
+            raise ValueError(f"drive needs finite steering and throttle, got {steering}, {throttle}; the car was told to stop")
+        self._command = (steering, throttle, self._clock())
 
     def stop(self) -> None:
         self._command = None

@@ -9,6 +9,7 @@ counted and dropped, and decoding resynchronises at the next 0x00. Runs on Pytho
 from __future__ import annotations
 
 import binascii
+import math
 import struct
 from dataclasses import dataclass
 from typing import Dict, Iterator, List, Optional, Tuple
@@ -144,5 +145,8 @@ class FrameDecoder:
 
 
 def to_thousandths(value: float) -> int:
-    """A command in [-1, 1] as the protocol's signed thousandths (clamped)."""
+    """A command in [-1, 1] as the protocol's signed thousandths (clamped); ValueError if not finite
+    (clamping would turn NaN into a full command: min(1.0, nan) is 1.0)."""
+    if not math.isfinite(value):
+        raise ValueError(f"a command must be a finite number, got {value}")
     return int(round(max(-1.0, min(1.0, value)) * 1000))

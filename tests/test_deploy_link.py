@@ -178,6 +178,30 @@ def test_link_drives_while_fresh_and_stops_when_stale(mock_link):
     assert mock_link.round_trip_stats()["p50"] < 0.05
 
 
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_a_non_finite_command_stops_the_car_and_is_never_sent(bad):
+    with pytest.raises(ValueError, match="finite"):
+        p.to_thousandths(bad)  # clamping alone would send NaN as a full command
+    register_url_scheme()
+    link = HostLink("mockjetracer://", send_hz=100, command_timeout=30.0).start()  # a command stays fresh all test
+    controller = link._port.controller
+    try:
+        assert link.arm()
+        link.drive(0.5, 0.55)
+        assert wait_until(lambda: controller.throttle == 0.55)
+        with pytest.raises(ValueError, match="told to stop"):
+            link.drive(bad, 0.55)
+        assert wait_until(lambda: controller.throttle == 0.0)  # the earlier command is not sent on
+        with pytest.raises(ValueError, match="finite"):
+            link.drive(0.0, bad)
+        time.sleep(0.05)
+        assert controller.throttle == 0.0 and controller.steering == 0.0 and controller.armed
+        link.drive(-0.5, 0.5)  # a finite command drives again: only the bad ones were refused
+        assert wait_until(lambda: controller.throttle == 0.5 and controller.steering == -0.5)
+    finally:
+        link.close()
+
+
 def test_link_estop_is_immediate_and_close_sends_stop_then_estop(mock_link):
     controller = mock_link._port.controller
     assert mock_link.arm()
