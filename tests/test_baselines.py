@@ -128,10 +128,17 @@ def test_cli_prints_the_baseline_figures():
         (["--episodes", "0"], "--episodes must be >= 1 and --seed >= 0, got 0 and 0"),  # was a traceback from min() of nothing
         (["--seed", "-1"], "--episodes must be >= 1 and --seed >= 0, got 20 and -1"),
         (["--baseline", "intervener:only_when_fast"], "error: the baseline returned None (it only intervenes)"),
+        (["--baseline", "intervener:diverged"], "error: the baseline returned array([nan]); expected 1 finite number(s)"),  # was "return nan"
+        (["--baseline", "intervener:two_actions"], "error: the baseline returned [0.0, 0.0]; expected 1 finite number(s)"),
     ],
 )
 def test_cli_refuses_what_it_cannot_measure(args, message, tmp_path):
-    (tmp_path / "intervener.py").write_text("def only_when_fast(obs):\n    return None\n")
+    (tmp_path / "intervener.py").write_text(
+        "import numpy as np\n"
+        "def only_when_fast(obs):\n    return None\n"
+        "def diverged(obs):\n    return np.array([np.nan])\n"
+        "def two_actions(obs):\n    return [0.0, 0.0]\n"
+    )
     env = {**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{ROOT}"}
     out = subprocess.run([sys.executable, "-m", "envs.baselines", "--episodes", "20", *args], cwd=ROOT, capture_output=True, text=True, env=env)
     assert out.returncode == 2 and message in out.stderr and "Traceback" not in out.stderr
