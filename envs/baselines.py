@@ -78,7 +78,10 @@ def rollout(env, policy: Baseline, seed: int) -> np.ndarray:
         action = policy(obs)
         if action is None:
             raise ValueError("the baseline returned None (it only intervenes), so it cannot be measured on its own")
-        values = np.asarray(action, dtype=np.float64)
+        try:
+            values = np.asarray(action, dtype=np.float64)
+        except (TypeError, ValueError):  # not numbers at all: the same one-line error as a wrong count
+            values = np.array([np.nan])
         if values.size != np.prod(env.action_space.shape) or not np.all(np.isfinite(values)):
             raise ValueError(f"the baseline returned {action!r}; expected {int(np.prod(env.action_space.shape))} finite number(s) in env units")
         obs, reward, terminated, truncated, _ = env.step(action)

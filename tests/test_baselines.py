@@ -130,6 +130,7 @@ def test_cli_prints_the_baseline_figures():
         (["--baseline", "intervener:only_when_fast"], "error: the baseline returned None (it only intervenes)"),
         (["--baseline", "intervener:diverged"], "error: the baseline returned array([nan]); expected 1 finite number(s)"),  # was "return nan"
         (["--baseline", "intervener:two_actions"], "error: the baseline returned [0.0, 0.0]; expected 1 finite number(s)"),
+        (["--baseline", "intervener:a_word"], "error: the baseline returned 'left'; expected 1 finite number(s)"),
     ],
 )
 def test_cli_refuses_what_it_cannot_measure(args, message, tmp_path):
@@ -138,6 +139,7 @@ def test_cli_refuses_what_it_cannot_measure(args, message, tmp_path):
         "def only_when_fast(obs):\n    return None\n"
         "def diverged(obs):\n    return np.array([np.nan])\n"
         "def two_actions(obs):\n    return [0.0, 0.0]\n"
+        "def a_word(obs):\n    return 'left'\n"
     )
     env = {**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{ROOT}"}
     out = subprocess.run([sys.executable, "-m", "envs.baselines", "--episodes", "20", *args], cwd=ROOT, capture_output=True, text=True, env=env)
