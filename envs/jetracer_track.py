@@ -174,15 +174,19 @@ class JetRacerTrackEnv(gym.Env):
         return self._observe(), self._info()
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        commands = action_to_commands(action, self.mapping)  # ValueError for a non-finite action, before any state changes
         self._previous_action = np.clip(np.asarray(action, dtype=np.float32), -1.0, 1.0)
-        progress, terminated = self.drive(*action_to_commands(action, self.mapping))
+        progress, terminated = self.drive(*commands)
         reward = self.off_track_reward if terminated else progress * self.progress_reward
         return self._observe(), float(reward), terminated, False, self._info()
 
     def drive(self, steering_command: float, throttle_command: float) -> tuple[float, bool]:
         """Advance one control period under raw commands, as a motor controller applies them (a
         throttle below the deadband, e.g. STOP's 0, brakes the car to rest). Returns (centre-line
-        progress in m, whether the car has left the lane). `step` is this after the action mapping."""
+        progress in m, whether the car has left the lane). `step` is this after the action mapping.
+        ValueError for a non-finite command, which would put NaN into the car's pose."""
+        if not (math.isfinite(steering_command) and math.isfinite(throttle_command)):
+            raise ValueError(f"commands must be finite, got steering {steering_command} and throttle {throttle_command}")
         car = self.car
         steering_target = float(np.clip(steering_command, -1.0, 1.0)) * car.max_steering_angle
         speed_target = car.max_speed * max(0.0, throttle_command - car.throttle_deadband) / (1.0 - car.throttle_deadband)

@@ -187,6 +187,25 @@ def test_action_mapping():
         ActionMapping(min_throttle=0.7, max_throttle=0.6)
 
 
+def test_a_non_finite_action_or_command_is_refused_and_changes_nothing():
+    env = JetRacerTrackEnv(random_start=False)
+    env.reset(seed=0)
+    env.step(np.array([0.2, 0.5]))
+    before = (env._state.copy(), env._previous_action.copy(), env._s, env._progress, env._time)
+    for bad in ([np.nan, 0.0], [0.0, np.inf]):
+        with pytest.raises(ValueError, match="finite"):
+            env.step(np.array(bad))
+    for steering, throttle in ((math.nan, 0.5), (0.0, -math.inf)):
+        with pytest.raises(ValueError, match="commands must be finite"):
+            env.drive(steering, throttle)
+    after = (env._state, env._previous_action, env._s, env._progress, env._time)
+    for was, now in zip(before, after):
+        np.testing.assert_array_equal(was, now)
+    obs, *_ = env.step(np.array([0.2, 0.5]))  # the env goes on as if the bad calls never came
+    assert np.all(np.isfinite(obs)) and np.all(np.isfinite(env._state))
+    env.close()
+
+
 def test_impossible_tracks_cars_and_rates_are_refused():
     from envs.jetracer_track import CarSpec
 
