@@ -152,6 +152,7 @@ class HostLink:
                 raise OSError("not connected")
             seq = self._seq
             self._seq = (self._seq + 1) & 0xFF
+            self._acks.pop(seq, None)  # the acknowledgement of the frame 256 sends ago must not answer this one
             self._sent[seq] = self._clock()
             self._port.write(p.encode(p.Message(kind, seq, fields)))
             return seq

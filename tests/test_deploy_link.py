@@ -202,6 +202,25 @@ def test_a_non_finite_command_stops_the_car_and_is_never_sent(bad):
         link.close()
 
 
+def test_arm_waits_for_its_own_acknowledgement_after_the_sequence_numbers_wrap():
+    register_url_scheme()
+    link = HostLink("mockjetracer://", send_hz=500).start()
+    controller = link._port.controller
+    try:
+        # every one of the 256 sequence numbers acknowledged (STOPs, unarmed) before the first ARM, as when
+        # the camera takes more than 256 sends (5 s at the car's 50 Hz) to open
+        assert wait_until(lambda: len(link._acks) == 256)
+        assert link.arm() and link.armed and controller.armed
+        link.drive(0.0, 0.5)
+        assert wait_until(lambda: controller.throttle == 0.5)
+        time.sleep(0.6)  # 300 more frames acknowledged, armed
+        link.estop()
+        link.watchdog_ms = 10  # below what the controller accepts: it refuses this ARM
+        assert not link.arm(timeout=0.3) and not link.armed and not controller.armed
+    finally:
+        link.close()
+
+
 def test_link_estop_is_immediate_and_close_sends_stop_then_estop(mock_link):
     controller = mock_link._port.controller
     assert mock_link.arm()
