@@ -238,7 +238,11 @@ class CarSession:
     def _on_signal(self, *_) -> None:
         self.stop_requested = True
         if getattr(self, "link", None) is not None:
-            self.link.estop()  # at once, not at the next tick
+            self.estop()  # at once, not at the next tick
+
+    def estop(self) -> None:
+        if not self.link.estop():
+            print(f"{self.mode}: the e-stop could not be sent (the link is down); the controller's watchdog stops the car", file=sys.stderr)
 
     def observe(self) -> Optional[np.ndarray]:
         """Read the gamepad, advance the simulator (if any) one period and read the camera; None if the
@@ -268,12 +272,12 @@ class CarSession:
         try:
             self.gamepad.poll()
         except GamepadLost as err:  # without its e-stop the car must not drive: stop it and end the run
-            self.link.estop()
+            self.estop()
             self.stop_requested = True
             print(f"{self.mode}: error: {err}; e-stopped", file=sys.stderr)
             return
         if self.gamepad.was_pressed(self.args.estop_button):
-            self.link.estop()
+            self.estop()
             self.stop_requested = True
 
     def human_action(self) -> Optional[np.ndarray]:

@@ -194,11 +194,17 @@ class HostLink:
     def stop(self) -> None:
         self._command = None
 
-    def estop(self) -> None:
-        """Immediate, outside the send loop."""
+    def estop(self) -> bool:
+        """Immediate, outside the send loop. A port that is down is no exception here, as this runs from
+        signal handlers: False says the ESTOP was not written, and the controller's watchdog then stops the
+        car within its period (a reopened link is not armed)."""
         self._command = None
         self._armed = False
-        self._send(p.ESTOP)
+        try:
+            self._send(p.ESTOP)
+        except OSError:  # serial.SerialException is one
+            return False
+        return True
 
     # -- loops ---------------------------------------------------------------------------------
     def _send_loop(self) -> None:

@@ -271,7 +271,7 @@ def test_training_e_stops_and_keeps_its_state_when_the_gamepad_is_lost(tmp_path,
 
     def estop(self):
         estops.append(len(polls))
-        real_estop(self)
+        return real_estop(self)
 
     monkeypatch.setattr(io.Gamepad, "poll", poll)
     monkeypatch.setattr(jetracer.HostLink, "estop", estop)
@@ -309,6 +309,25 @@ def test_training_ends_and_keeps_its_state_when_the_watchdog_trips(tmp_path, mon
     assert 50 <= torch.load(state, weights_only=True)["counters"]["step"] <= 52  # stopped within a period or two, saved
     err = capsys.readouterr().err
     assert "train: error: the controller is no longer armed (its watchdog tripped" in err and len(err.strip().splitlines()) == 1
+
+
+def test_ctrl_c_while_the_link_is_down_ends_the_training_cleanly_and_keeps_its_state(tmp_path, monkeypatch, capsys):
+    import os
+    import signal
+
+    def link_down_then_ctrl_c(session):
+        def unwritable(*_):
+            raise OSError("not connected")
+
+        session.link._send = unwritable  # the port is gone, not yet reopened
+        os.kill(os.getpid(), signal.SIGINT)
+
+    at_period(monkeypatch, 50, link_down_then_ctrl_c)
+    state = tmp_path / "train.pt"
+    jetracer.main(["train", "--total-steps", "500", "--train-every", "40", "--gradient-steps", "2",
+                   "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST])  # fmt: skip
+    assert torch.load(state, weights_only=True)["counters"]["step"] == 50  # saved on the way out
+    assert "train: the e-stop could not be sent (the link is down); the controller's watchdog stops the car" in capsys.readouterr().err
 
 
 def test_a_drive_ends_when_the_controller_restarts_unarmed(tmp_path, monkeypatch, capsys):

@@ -277,6 +277,22 @@ def test_pty_link_survives_an_unplug_and_never_rearms_itself():
         pty.close()
 
 
+def test_estop_with_the_port_down_says_so_and_never_raises():
+    pty = PtyController()
+    link = HostLink(pty.path, send_hz=100, backoff=(5.0, 5.0)).start()  # stays down once unplugged
+    try:
+        assert link.arm() and link.estop()  # written
+        assert link.arm()
+        link.drive(0.2, 0.5)
+        pty.unplug()
+        assert wait_until(lambda: not link.connected.is_set())
+        assert link.estop() is False  # from a signal handler, an exception would end the run mid-step
+        assert not link.armed and link._command is None
+    finally:
+        link.close()
+        pty.close()
+
+
 def test_spy_url_wraps_a_real_port(tmp_path):
     pty = PtyController()
     log = tmp_path / "spy.txt"
