@@ -209,11 +209,12 @@ def test_arm_waits_for_its_own_acknowledgement_after_the_sequence_numbers_wrap()
     try:
         # every one of the 256 sequence numbers acknowledged (STOPs, unarmed) before the first ARM, as when
         # the camera takes more than 256 sends (5 s at the car's 50 Hz) to open
-        assert wait_until(lambda: len(link._acks) == 256)
+        assert wait_until(lambda: len(link._acks) == 256, timeout=5.0)
         assert link.arm() and link.armed and controller.armed
         link.drive(0.0, 0.5)
         assert wait_until(lambda: controller.throttle == 0.5)
-        time.sleep(0.6)  # 300 more frames acknowledged, armed
+        # then every number acknowledged again, armed, before an ARM the controller refuses
+        assert wait_until(lambda: all(status & p.STATUS_ARMED for status in list(link._acks.values())) and len(link._acks) == 256, timeout=5.0)
         link.estop()
         link.watchdog_ms = 10  # below what the controller accepts: it refuses this ARM
         assert not link.arm(timeout=0.3) and not link.armed and not controller.armed
@@ -285,7 +286,7 @@ def test_estop_with_the_port_down_says_so_and_never_raises():
         assert link.arm()
         link.drive(0.2, 0.5)
         pty.unplug()
-        assert wait_until(lambda: not link.connected.is_set())
+        assert wait_until(lambda: not link.connected.is_set(), timeout=3.0)
         assert link.estop() is False  # from a signal handler, an exception would end the run mid-step
         assert not link.armed and link._command is None
     finally:
