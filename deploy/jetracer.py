@@ -240,9 +240,12 @@ class CarSession:
         if getattr(self, "link", None) is not None:
             self.estop()  # at once, not at the next tick
 
-    def estop(self) -> None:
-        if not self.link.estop():
-            print(f"{self.mode}: the e-stop could not be sent (the link is down); the controller's watchdog stops the car", file=sys.stderr)
+    def estop(self) -> bool:
+        """E-stop the car; False, said on stderr, if the link is down and only the watchdog can stop it."""
+        if self.link.estop():
+            return True
+        print(f"{self.mode}: the e-stop could not be sent (the link is down); the controller's watchdog stops the car", file=sys.stderr)
+        return False
 
     def observe(self) -> Optional[np.ndarray]:
         """Read the gamepad, advance the simulator (if any) one period and read the camera; None if the
@@ -272,9 +275,9 @@ class CarSession:
         try:
             self.gamepad.poll()
         except GamepadLost as err:  # without its e-stop the car must not drive: stop it and end the run
-            self.estop()
+            sent = self.estop()
             self.stop_requested = True
-            print(f"{self.mode}: error: {err}; e-stopped", file=sys.stderr)
+            print(f"{self.mode}: error: {err}{'; e-stopped' if sent else ''}", file=sys.stderr)
             return
         if self.gamepad.was_pressed(self.args.estop_button):
             self.estop()

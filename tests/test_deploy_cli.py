@@ -285,6 +285,32 @@ def test_training_e_stops_and_keeps_its_state_when_the_gamepad_is_lost(tmp_path,
     assert f"train: error: gamepad '{path}' lost (No such device); e-stopped" in capsys.readouterr().err
 
 
+def test_a_gamepad_lost_while_the_link_is_down_does_not_claim_an_e_stop(tmp_path, monkeypatch, capsys):
+    from deploy import io
+
+    path = fifo_gamepad(tmp_path, monkeypatch)
+    polls = []
+
+    def poll(self):
+        polls.append(1)
+        if len(polls) > 20:
+            raise io.GamepadLost(f"gamepad {self.path!r} lost (No such device)")
+
+    def unwritable(self, *_):
+        if len(polls) > 20:  # the USB hub that held both went away
+            raise OSError("not connected")
+        return real_send(self, *_)
+
+    real_send = jetracer.HostLink._send
+    monkeypatch.setattr(io.Gamepad, "poll", poll)
+    monkeypatch.setattr(jetracer.HostLink, "_send", unwritable)
+    rewards = jetracer.baseline(jetracer.Baseline(steps=300, gamepad=path, log_dir=str(tmp_path)))
+    assert len(rewards) == 20
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["baseline: the e-stop could not be sent (the link is down); the controller's watchdog stops the car",
+                   f"baseline: error: gamepad '{path}' lost (No such device)"]  # fmt: skip
+
+
 def at_period(monkeypatch, n: int, event: Callable) -> None:
     """Call event(session) at the end of the n-th control period (CarSession.wait, counted from 1)."""
     waits, real_wait = [], jetracer.CarSession.wait
