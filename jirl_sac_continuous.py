@@ -28,6 +28,7 @@ except ImportError:
     project_baseline = project_make_env = None
 
 CHECKPOINT_FORMAT = "jirl-sac-checkpoint-v2"  # v2: the twin critics as one ensemble "qf"
+CHECKPOINT_KEYS = ("env_id", "obs_dim", "action_low", "action_high", "hidden_size", "actor", "qf", "args")  # what save_checkpoint writes besides the format
 EVAL_SEED_OFFSET = 1_000_000  # evaluation episodes (and the baseline's) never reuse a training reset seed
 FUSED_ADAM = tuple(int(v) for v in torch.__version__.split(".")[:2]) >= (2, 4)  # fused Adam runs on CPU from torch 2.4 (the car may have older)
 GUIDANCE_C_END = 1e-6  # where the geometric guidance schedule ends before C drops to 0
@@ -645,6 +646,9 @@ def load_checkpoint(path: str) -> dict:
         raise ValueError(f"{path} is not a readable checkpoint ({type(err).__name__}: {err})") from None
     if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path} is not a {CHECKPOINT_FORMAT} checkpoint")
+    missing = [key for key in CHECKPOINT_KEYS if key not in checkpoint]
+    if missing:
+        raise ValueError(f"{path} is a damaged {CHECKPOINT_FORMAT} checkpoint: it has no {', '.join(missing)}")
     return checkpoint
 
 

@@ -25,6 +25,7 @@ except ImportError:
     project_baseline = project_make_env = None
 
 CHECKPOINT_FORMAT = "jirl-gaussian-checkpoint-v1"
+CHECKPOINT_KEYS = ("env_id", "obs_dim", "action_low", "action_high", "hidden_size", "agent", "obs_mean", "obs_var", "args")  # what save_checkpoint writes besides the format
 EVAL_SEED_OFFSET = 1_000_000  # evaluation episodes (and the baseline's) never reuse a training reset seed
 IL_SEED_OFFSET = 2_000_000  # the imitation phase's baseline episodes neither
 
@@ -442,6 +443,9 @@ def load_checkpoint(path: str) -> dict:
         raise ValueError(f"{path} is not a readable checkpoint ({type(err).__name__}: {err})") from None
     if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path} is not a {CHECKPOINT_FORMAT} checkpoint")
+    missing = [key for key in CHECKPOINT_KEYS if key not in checkpoint]
+    if missing:
+        raise ValueError(f"{path} is a damaged {CHECKPOINT_FORMAT} checkpoint: it has no {', '.join(missing)}")
     return checkpoint
 
 

@@ -41,6 +41,9 @@ from envs.car_interface import OBS_SIZE, ActionMapping, action_to_commands, prep
 from envs.lane_follower import LaneFollower  # noqa: E402
 
 TRAIN_STATE_FORMAT = "jirl-car-training-v2"  # v2: the agent's twin critics as one ensemble
+BUFFER_FIELDS = ("obs", "next_obs", "actions", "rewards", "terminations")  # the replay rows a training state keeps
+TRAIN_COUNTERS = {"step": 0, "fabricated_transitions": 0, "control_switches": 0, "baseline_regret_per_step": 0.0,
+                  "paired_regret_per_step": 0.0, "updates": 0}  # fmt: skip
 SENDS_PER_PERIOD = 2.5  # the link sends this many frames per control period (DRIVE or STOP, feeding the watchdog)
 CAMERA_LOST_S = 2.0  # stale frames for this long end the run: the camera is gone (or a recorded video ended)
 
@@ -453,7 +456,7 @@ def save_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
     state = {
         "format": TRAIN_STATE_FORMAT,
         "sac": sac.state_dict(),
-        "buffer": {name: torch.from_numpy(getattr(rb, name)[:n].copy()) for name in ("obs", "next_obs", "actions", "rewards", "terminations")},
+        "buffer": {name: torch.from_numpy(getattr(rb, name)[:n].copy()) for name in BUFFER_FIELDS},
         "buffer_pos": rb.pos,
         "counters": counters,
         "hidden_size": args.jirl.hidden_size,
@@ -478,15 +481,23 @@ def load_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
         raise ValueError(f"{path} is not a readable training state ({type(err).__name__}: {err})") from None
     if not isinstance(state, dict) or state.get("format") != TRAIN_STATE_FORMAT:
         raise ValueError(f"{path} is not a {TRAIN_STATE_FORMAT} file")
+    missing = [key for key in ("sac", "buffer", "buffer_pos", "counters", "hidden_size") if key not in state]
+    missing += [f"buffer {key}" for key in BUFFER_FIELDS if key not in state.get("buffer", {})]
+    missing += [f"counter {key}" for key in TRAIN_COUNTERS if key not in state.get("counters", {})]
+    if missing:
+        raise ValueError(f"{path} is a damaged {TRAIN_STATE_FORMAT} file: it has no {', '.join(missing)}")
     if state["hidden_size"] != sac.args.hidden_size:  # checked before anything is loaded into the agent
         raise ValueError(f"{path} holds an agent of {state['hidden_size']} units, not --jirl.hidden-size {sac.args.hidden_size}")
-    sac.load_state_dict(state["sac"])
     # The rows are saved in ring order with the next write position; rolled, they run oldest to newest,
     # so a buffer of another capacity takes the newest rows and goes on writing after them.
     n = len(state["buffer"]["obs"])
     kept = min(n, rb.capacity)
-    for name, values in state["buffer"].items():
-        getattr(rb, name)[:kept] = np.roll(values.numpy(), -state["buffer_pos"], axis=0)[n - kept :]
+    try:  # a failure here leaves a half-loaded agent, which the caller discards: the run ends
+        sac.load_state_dict(state["sac"])
+        for name in BUFFER_FIELDS:
+            getattr(rb, name)[:kept] = np.roll(state["buffer"][name].numpy(), -state["buffer_pos"], axis=0)[n - kept :]
+    except (KeyError, RuntimeError, ValueError, TypeError, AttributeError) as err:
+        raise ValueError(f"{path} is a damaged {TRAIN_STATE_FORMAT} file ({type(err).__name__}: {err})") from None
     rb.size, rb.pos = kept, kept % rb.capacity
     if kept < n:
         print(f"resume: --jirl.buffer-size {rb.capacity} keeps the newest {kept} of the {n} saved transitions")
@@ -508,8 +519,7 @@ def train(args: Train) -> dict:
     torch.set_num_threads(hp.torch_threads)
     sac = jirl.SoftActorCritic(OBS_SIZE, 2, hp)
     rb = jirl.ReplayBuffer(hp.buffer_size, OBS_SIZE, 2, args.seed)
-    counters = {"step": 0, "fabricated_transitions": 0, "control_switches": 0, "baseline_regret_per_step": 0.0,
-                "paired_regret_per_step": 0.0, "updates": 0}  # fmt: skip
+    counters = dict(TRAIN_COUNTERS)
     if args.resume:
         try:
             counters = load_training_state(args.checkpoint, sac, rb)

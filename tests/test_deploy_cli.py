@@ -590,7 +590,7 @@ def test_resuming_into_another_buffer_size_keeps_the_newest_transitions_in_order
     for i in range(7):  # wraps: rows 5 and 6 overwrite 0 and 1, the next write goes to row 2
         rb.add(obs(i), np.zeros(2), float(i), obs(i + 1), False)
     path = str(tmp_path / "state.pt")
-    jetracer.save_training_state(path, sac, rb, {"step": 7}, args)
+    jetracer.save_training_state(path, sac, rb, dict(jetracer.TRAIN_COUNTERS, step=7), args)
     for capacity, newest in ((10, [2, 3, 4, 5, 6]), (5, [2, 3, 4, 5, 6]), (3, [4, 5, 6])):
         loaded = jetracer.jirl.ReplayBuffer(capacity, jetracer.OBS_SIZE, 2, seed=0)
         jetracer.load_training_state(path, jetracer.jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, hp), loaded)
@@ -602,3 +602,41 @@ def test_resuming_into_another_buffer_size_keeps_the_newest_transitions_in_order
     hp.hidden_size = 16
     with pytest.raises(ValueError, match="holds an agent of 8 units, not --jirl.hidden-size 16"):
         jetracer.load_training_state(path, jetracer.jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, hp), loaded)
+
+
+def damage(state: dict, part: str) -> dict:
+    """A copy of a training state with one part removed or made the wrong shape."""
+    state = {**state, "sac": dict(state["sac"]), "buffer": dict(state["buffer"]), "counters": dict(state["counters"])}
+    if part == "counter":
+        del state["counters"]["updates"]
+    elif part == "buffer":
+        del state["buffer"]["rewards"]
+    elif part == "entropy":
+        del state["sac"]["log_alpha"]
+    elif part == "actions":
+        state["buffer"]["actions"] = torch.zeros(len(state["buffer"]["obs"]), 3)
+    elif part == "critic":
+        state["sac"]["qf"] = {k: v[..., :-1] for k, v in state["sac"]["qf"].items()}
+    return state
+
+
+@pytest.mark.parametrize("part, message", [
+    ("counter", "it has no counter updates$"), ("buffer", "it has no buffer rewards$"), ("entropy", r"\(KeyError: 'log_alpha'\)"),
+    ("actions", r"\(ValueError: could not broadcast"), ("critic", r"\(RuntimeError: Error\(s\) in loading state_dict"),
+])  # fmt: skip
+def test_a_damaged_training_state_is_named_and_kept(tmp_path, part, message):
+    hp = jetracer.car_jirl_defaults()
+    hp.hidden_size = 8
+    path = tmp_path / "state.pt"
+    rb = jetracer.jirl.ReplayBuffer(10, jetracer.OBS_SIZE, 2, seed=0)
+    for i in range(4):
+        rb.add(np.zeros(jetracer.OBS_SIZE), np.zeros(2), float(i), np.zeros(jetracer.OBS_SIZE), False)
+    args = jetracer.Train(jirl=hp, checkpoint=str(path), resume=True, log_dir=str(tmp_path))
+    jetracer.save_training_state(str(path), jetracer.jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, hp), rb, dict(jetracer.TRAIN_COUNTERS), args)
+    torch.save(damage(torch.load(path, weights_only=True), part), path)
+    written = path.read_bytes()
+    with pytest.raises(ValueError, match="state.pt is a damaged jirl-car-training-v2 file.*" + message):
+        jetracer.load_training_state(str(path), jetracer.jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, hp), rb)
+    with pytest.raises(SystemExit, match="^train: error: .*damaged"):  # before the car is armed or anything is written
+        jetracer.train(args)
+    assert path.read_bytes() == written

@@ -103,6 +103,13 @@ def test_checkpoint_round_trip_and_errors(tmp_path, sac):
     lander = sac.make_env("LunarLanderContinuous-v3", 0)
     with pytest.raises(ValueError, match="checkpoint expects 3 observations and 1 actions"):
         sac.actor_from_checkpoint(sac.load_checkpoint(str(path)), lander)
+    saved = torch.load(path, weights_only=True)
+    for key in ("actor", "hidden_size"):  # the right format tag, a part missing: named, not a KeyError later
+        damaged = tmp_path / f"no_{key}.cleanrl_model"
+        torch.save({k: v for k, v in saved.items() if k != key}, damaged)
+        with pytest.raises(ValueError, match=f"damaged jirl-sac-checkpoint-v2 checkpoint: it has no {key}$"):
+            sac.load_checkpoint(str(damaged))
+        assert damaged.exists()
     assert path.exists() and corrupt.exists(), "a failed load deletes nothing"
 
 

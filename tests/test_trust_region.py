@@ -157,6 +157,10 @@ def test_end_to_end_logs_saves_and_evaluates(name, tmp_path):
     torch.save(other_bounds, tmp_path / "other_bounds.cleanrl_model")
     with pytest.raises(ValueError, match="checkpoint action bounds differ"):
         script.evaluate(str(tmp_path / "other_bounds.cleanrl_model"), "Pendulum-v1", 1, 1)
+    no_statistics = {k: v for k, v in torch.load(model, weights_only=True).items() if k != "obs_var"}
+    torch.save(no_statistics, tmp_path / "no_statistics.cleanrl_model")
+    with pytest.raises(ValueError, match="damaged jirl-gaussian-checkpoint-v1 checkpoint: it has no obs_var$"):
+        script.evaluate(str(tmp_path / "no_statistics.cleanrl_model"), "Pendulum-v1", 1, 1)
 
 
 @pytest.mark.parametrize("name", ["ppo_il", "trpo_il"])
