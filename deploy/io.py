@@ -2,7 +2,8 @@
 
 Every camera returns `(frame, timestamp)`: a 112x112 BGR uint8 frame (`envs.car_interface.FRAME_SHAPE`)
 and the monotonic time it was captured, or `(None, 0.0)` when it has none; the control loop treats a
-frame older than two control periods as lost. OpenCV and the simulator are imported lazily.
+frame older than two control periods as lost. A camera that can deliver no usable frame again raises
+CameraFailed, and the run ends at once. OpenCV and the simulator are imported lazily.
 """
 
 from __future__ import annotations
@@ -49,11 +50,16 @@ def to_policy_frame(frame: np.ndarray) -> np.ndarray:
     return frame
 
 
+class CameraFailed(Exception):
+    """The camera delivered a frame the policy cannot use after it opened, or its reader failed."""
+
+
 class OpenCVCamera:
     """A cv2.VideoCapture read by a background thread, so `read()` returns the newest frame at once.
 
     The first frame is read when the camera opens, so a format the policy cannot use is an error there,
-    before the car is armed.
+    before the car is armed. Such a frame later on (or an error in the reader) makes every `read()`
+    raise CameraFailed, naming it.
     """
 
     def __init__(self, source, api: Optional[int] = None, realtime: bool = True) -> None:
@@ -62,7 +68,9 @@ class OpenCVCamera:
         self.capture = cv2.VideoCapture(source, api) if api is not None else cv2.VideoCapture(source)
         if not self.capture.isOpened():
             raise ValueError(f"cannot open camera {source!r}")
+        self.source = source
         self.realtime = realtime  # False for a video file: one new frame per read, at the file's pace
+        self._failure: Optional[str] = None  # why the reader thread ended, for read() to raise
         self._latest: Frame = (None, 0.0)
         self._pending: Optional[np.ndarray] = None  # a video file's first frame, read at open
         self._lock = threading.Lock()
@@ -86,25 +94,38 @@ class OpenCVCamera:
 
     def _grab(self) -> None:
         while not self._stop.is_set():
-            ok, frame = self.capture.read()
-            if not ok:
-                time.sleep(0.005)
-                continue
-            latest = (to_policy_frame(frame), time.monotonic())
+            try:
+                ok, frame = self.capture.read()
+                if not ok:
+                    time.sleep(0.005)
+                    continue
+                latest = (self._convert(frame), time.monotonic())
+            except Exception as err:  # uncaught, the thread would die and the loop see only stale frames, never why
+                self._failure = str(err) if isinstance(err, CameraFailed) else f"camera {self.source!r} failed ({type(err).__name__}: {err})"
+                return
             with self._lock:
                 self._latest = latest
                 self.frames_read += 1
 
+    def _convert(self, frame: np.ndarray) -> np.ndarray:
+        try:
+            return to_policy_frame(frame)
+        except ValueError as err:  # the camera's format changed after it opened
+            raise CameraFailed(f"camera {self.source!r} delivered {err}") from None
+
     def read(self) -> Frame:
+        """The newest frame and its capture time; (None, 0.0) if none yet (or a video ended); CameraFailed."""
         if not self.realtime:
             frame, self._pending = self._pending, None
             if frame is None:
                 ok, frame = self.capture.read()
                 if not ok:
                     return None, 0.0
-                frame = to_policy_frame(frame)
+                frame = self._convert(frame)
             self.frames_read += 1
             return frame, time.monotonic()
+        if self._failure is not None:
+            raise CameraFailed(self._failure)
         with self._lock:
             return self._latest
 

@@ -35,7 +35,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__)))) 
 
 import jirl_sac_continuous as jirl  # noqa: E402
 from deploy import protocol as p  # noqa: E402
-from deploy.io import Gamepad, GamepadLost, SimWorld, open_camera  # noqa: E402
+from deploy.io import CameraFailed, Gamepad, GamepadLost, SimWorld, open_camera  # noqa: E402
 from deploy.link import HostLink  # noqa: E402
 from envs.car_interface import OBS_SIZE, ActionMapping, action_to_commands, preprocess  # noqa: E402
 from envs.lane_follower import LaneFollower  # noqa: E402
@@ -258,7 +258,14 @@ class CarSession:
             return None
         if self.world is not None:
             self.world.tick()
-        frame, captured = self.camera.read()
+        try:
+            frame, captured = self.camera.read()
+        except CameraFailed as err:  # no frame will come: stop now rather than after CAMERA_LOST_S of stale ones
+            self.frames_dropped += 1
+            self.link.stop()
+            self.stop_requested = True
+            print(f"{self.mode}: error: {err}; stopping", file=sys.stderr)
+            return None
         if frame is None or time.monotonic() - captured > 2.0 * self.period:
             self.frames_dropped += 1
             self.stale_periods += 1

@@ -395,6 +395,35 @@ def test_a_camera_that_stops_delivering_ends_the_run(mode, tmp_path, monkeypatch
     assert f"{mode}: error: no fresh camera frame for 40 periods (2 s); stopping" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("mode", ["baseline", "train"])
+def test_a_camera_that_fails_ends_the_run_at_once_saying_why(mode, tmp_path, monkeypatch, capsys):
+    from deploy import io
+
+    reads, real_read = [], io.SimWorld.read
+
+    def read(self):
+        if isinstance(self.controller, jetracer._NullController):  # train's shadow car
+            return real_read(self)
+        reads.append(1)
+        if len(reads) > 30:
+            raise io.CameraFailed("camera 0 delivered a (480, 640) uint16 frame; expected 8-bit grey, BGR or BGRA")
+        return real_read(self)
+
+    monkeypatch.setattr(io.SimWorld, "read", read)
+    stops, real_stop = [], jetracer.HostLink.stop
+    monkeypatch.setattr(jetracer.HostLink, "stop", lambda self: stops.append(len(reads)) or real_stop(self))
+    state = tmp_path / "train.pt"
+    if mode == "baseline":
+        assert len(jetracer.baseline(jetracer.Baseline(steps=300, log_dir=str(tmp_path)))) == 30
+    else:
+        jetracer.main(["train", "--total-steps", "500", "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST])
+        assert torch.load(state, weights_only=True)["counters"]["step"] == 30  # saved on the way out
+    assert len(reads) == 31 and stops[0] == 31  # the car stopped at the failed read; not 2 s of stale frames
+    err = capsys.readouterr().err
+    assert f"{mode}: error: camera 0 delivered a (480, 640) uint16 frame; expected 8-bit grey, BGR or BGRA; stopping" in err
+    assert "no fresh camera frame" not in err and "Traceback" not in err
+
+
 def test_the_e_stop_is_read_while_the_frames_are_stale(tmp_path, monkeypatch, capsys):
     import os
 

@@ -77,3 +77,50 @@ def test_a_camera_whose_frames_the_policy_cannot_use_is_refused_at_open(monkeypa
     with pytest.raises(ValueError, match=r"^camera 4 delivered a \(480, 640\) uint16 frame; expected 8-bit grey, BGR or BGRA$"):
         io.open_camera("usb:4")
     assert released == [True]
+
+
+class ChangingCamera:
+    """A capture whose first `good` frames are BGR, after which it fails as `then` says."""
+
+    def __init__(self, good: int, then: str):
+        self.good, self.then, self.reads = good, then, 0
+
+    def isOpened(self):
+        return True
+
+    def read(self):
+        self.reads += 1
+        if self.reads <= self.good:
+            return True, np.zeros((120, 160, 3), dtype=np.uint8)
+        if self.then == "depth":  # the format changed mid-run: 16-bit frames
+            return True, np.zeros((480, 640), dtype=np.uint16)
+        raise cv2.error("driver crashed")
+
+    def release(self):
+        pass
+
+
+@pytest.mark.parametrize("then, message", [
+    ("depth", r"^camera 4 delivered a \(480, 640\) uint16 frame; expected 8-bit grey, BGR or BGRA$"),
+    ("crash", r"^camera 4 failed \(error: driver crashed\)$"),
+])  # fmt: skip
+def test_a_camera_that_fails_after_it_opened_says_why_at_every_read(monkeypatch, then, message):
+    monkeypatch.setattr(cv2, "VideoCapture", lambda *args: ChangingCamera(3, then))
+    camera = io.open_camera("usb:4")
+    deadline = time.monotonic() + 10
+    while camera._thread.is_alive() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert not camera._thread.is_alive() and camera.frames_read == 3  # the reader ended at the bad frame
+    for _ in range(2):  # not a stale frame the loop would wait on for seconds, nor a traceback in the reader
+        with pytest.raises(io.CameraFailed, match=message):
+            camera.read()
+    camera.close()
+
+
+def test_a_recorded_video_whose_format_changes_raises_camera_failed(monkeypatch):
+    monkeypatch.setattr(cv2, "VideoCapture", lambda *args: ChangingCamera(2, "depth"))
+    camera = io.open_camera("file:drive.avi")
+    assert camera.read()[0].shape == FRAME_SHAPE and camera.read()[0].shape == FRAME_SHAPE
+    with pytest.raises(io.CameraFailed, match=r"^camera 'drive.avi' delivered a \(480, 640\) uint16 frame"):
+        camera.read()
+    assert camera.frames_read == 2
