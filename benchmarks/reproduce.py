@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 import os
+import shlex
 import subprocess
 import sys
 import time
@@ -127,7 +128,7 @@ def command(preset: dict, env: str, method: str, seed: int, steps: Optional[int]
 def done_arguments(folder: Path) -> Optional[list[str]]:
     """The arguments a finished run was trained with (after interpreter and script), or None if unfinished."""
     marker = folder / "DONE"
-    return marker.read_text().split()[2:] if marker.exists() else None
+    return shlex.split(marker.read_text())[2:] if marker.exists() else None
 
 
 def run_one(cmd: list[str], folder: str) -> int:
@@ -137,7 +138,7 @@ def run_one(cmd: list[str], folder: str) -> int:
     with open(path / "log.txt", "w") as log:
         code = subprocess.run(cmd, cwd=path, stdout=log, stderr=subprocess.STDOUT).returncode
     if code == 0:
-        (path / "DONE").write_text(" ".join(cmd) + "\n")
+        (path / "DONE").write_text(shlex.join(cmd) + "\n")  # quoted: a path with a space stays one argument
     return code
 
 
@@ -195,7 +196,7 @@ def launch(args: Args) -> None:
             failed.append(folder)
             print(f"[{i}/{len(submitted)}] {folder} FAILED (job {job.job_id})", flush=True)
             continue
-        (Path(folder) / "DONE").write_text(" ".join(cmd) + "\n")
+        (Path(folder) / "DONE").write_text(shlex.join(cmd) + "\n")  # quoted: a path with a space stays one argument
         print(f"[{i}/{len(submitted)}] {folder} done (job {job.job_id})", flush=True)
     report_failures(failed, len(submitted))
 

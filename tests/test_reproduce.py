@@ -147,6 +147,19 @@ def test_a_failed_run_is_named_and_the_others_finish(tmp_path, monkeypatch, laun
     assert "boom" in (folder[2] / "log.txt").read_text()
 
 
+def test_a_finished_run_is_recognised_when_a_path_in_its_command_has_a_space(tmp_path, monkeypatch, capsys):
+    script = tmp_path / "my projects" / "train.py"  # e.g. a clone under "My Projects"
+    script.parent.mkdir()
+    script.write_text("print('fine')\n")
+    monkeypatch.setattr(reproduce, "command", lambda preset, env, method, seed, steps=None: [sys.executable, str(script), "--seed", str(seed)])
+    args = reproduce.Args(envs=("Pendulum-v1",), methods=("sac",), seeds=(1, 2), preset="quick", workdir=str(tmp_path / "work"), workers=2)
+    reproduce.launch(args)
+    assert reproduce.done_arguments(reproduce.run_dir(tmp_path / "work", "Pendulum-v1", "sac", 2)) == ["--seed", "2"]
+    capsys.readouterr()
+    reproduce.launch(args)  # before, the DONE marker split the path: every finished run "used other arguments"
+    assert "2 already done, 0 to run" in capsys.readouterr().out
+
+
 def test_arguments_out_of_range_are_refused():
     for bad in (dict(workers=0), dict(steps=0), dict(seeds=()), dict(seeds=(1, -1))):
         with pytest.raises(ValueError, match=f"--{next(iter(bad))} must be"):
