@@ -488,18 +488,22 @@ def load_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
         raise ValueError(f"{path} is not a readable training state ({type(err).__name__}: {err})") from None
     if not isinstance(state, dict) or state.get("format") != TRAIN_STATE_FORMAT:
         raise ValueError(f"{path} is not a {TRAIN_STATE_FORMAT} file")
+
+    def table(key: str) -> dict:  # a part that must be a dict, {} where it is missing or is not one
+        return state[key] if isinstance(state.get(key), dict) else {}
+
     missing = [key for key in ("sac", "buffer", "buffer_pos", "counters", "hidden_size") if key not in state]
-    missing += [f"buffer {key}" for key in BUFFER_FIELDS if key not in state.get("buffer", {})]
-    missing += [f"counter {key}" for key in TRAIN_COUNTERS if key not in state.get("counters", {})]
+    missing += [f"buffer {key}" for key in BUFFER_FIELDS if key not in table("buffer")]
+    missing += [f"counter {key}" for key in TRAIN_COUNTERS if key not in table("counters")]
     if missing:
         raise ValueError(f"{path} is a damaged {TRAIN_STATE_FORMAT} file: it has no {', '.join(missing)}")
     if state["hidden_size"] != sac.args.hidden_size:  # checked before anything is loaded into the agent
         raise ValueError(f"{path} holds an agent of {state['hidden_size']} units, not --jirl.hidden-size {sac.args.hidden_size}")
     # The rows are saved in ring order with the next write position; rolled, they run oldest to newest,
     # so a buffer of another capacity takes the newest rows and goes on writing after them.
-    n = len(state["buffer"]["obs"])
-    kept = min(n, rb.capacity)
     try:  # a failure here leaves a half-loaded agent, which the caller discards: the run ends
+        n = len(state["buffer"]["obs"])
+        kept = min(n, rb.capacity)
         sac.load_state_dict(state["sac"])
         for name in BUFFER_FIELDS:
             getattr(rb, name)[:kept] = np.roll(state["buffer"][name].numpy(), -state["buffer_pos"], axis=0)[n - kept :]

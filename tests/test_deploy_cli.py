@@ -644,13 +644,16 @@ def damage(state: dict, part: str) -> dict:
         del state["sac"]["log_alpha"]
     elif part == "actions":
         state["buffer"]["actions"] = torch.zeros(len(state["buffer"]["obs"]), 3)
+    elif part == "buffer table":  # a tensor where the columns' table belongs
+        state["buffer"] = torch.zeros(3)
     elif part == "critic":
         state["sac"]["qf"] = {k: v[..., :-1] for k, v in state["sac"]["qf"].items()}
     return state
 
 
 @pytest.mark.parametrize("part, message", [
-    ("counter", "it has no counter updates$"), ("buffer", "it has no buffer rewards$"), ("entropy", r"\(KeyError: 'log_alpha'\)"),
+    ("counter", "it has no counter updates$"), ("buffer", "it has no buffer rewards$"),
+    ("buffer table", "it has no buffer obs, buffer next_obs, buffer actions, buffer rewards, buffer terminations$"), ("entropy", r"\(KeyError: 'log_alpha'\)"),
     ("actions", r"\(ValueError: could not broadcast"), ("critic", r"\(RuntimeError: Error\(s\) in loading state_dict"),
 ])  # fmt: skip
 def test_a_damaged_training_state_is_named_and_kept(tmp_path, part, message):
