@@ -52,11 +52,19 @@ def _read(path: Path) -> dict[str, Any]:
     return data
 
 
+def _require(data: dict[str, Any], keys: tuple[str, ...], path: Path, what: str) -> None:
+    """ValueError naming what a file with the right format tag lacks (a KeyError would come later)."""
+    missing = [key for key in keys if key not in data]
+    if missing:
+        raise ValueError(f"{path} is a damaged {what}: it has no {', '.join(missing)}")
+
+
 def load_policy(path: Path = WEIGHTS) -> tuple[MeanPolicy, np.ndarray, np.ndarray, dict[str, Any]]:
     """(policy, action low, action high, metadata) from a file written by `export`; ValueError if it is not one."""
     data = _read(Path(path))
     if data.get("format") != WEIGHTS_FORMAT:
         raise ValueError(f"{path} is not a {WEIGHTS_FORMAT} file")
+    _require(data, ("obs_dim", "action_low", "action_high", "hidden_size", "policy", "metadata"), path, f"{WEIGHTS_FORMAT} file")
     policy = MeanPolicy(data["obs_dim"], len(data["action_low"]), data["hidden_size"])
     try:
         policy.load_state_dict(data["policy"])
@@ -87,6 +95,7 @@ def export(checkpoint: Path, out: Path = WEIGHTS, **metadata: Any) -> None:
     data = _read(Path(checkpoint))
     if data.get("format") not in SAC_CHECKPOINT_FORMATS:
         raise ValueError(f"{checkpoint} is not a sac_continuous.py checkpoint ({', '.join(SAC_CHECKPOINT_FORMATS)})")
+    _require(data, ("env_id", "obs_dim", "hidden_size", "action_low", "action_high", "actor", "args"), checkpoint, "sac_continuous.py checkpoint")
     policy = {k: v for k, v in data["actor"].items() if not k.startswith("fc_logstd.")}
     weights = {
         "format": WEIGHTS_FORMAT,
@@ -98,7 +107,10 @@ def export(checkpoint: Path, out: Path = WEIGHTS, **metadata: Any) -> None:
         "policy": policy,
         "metadata": {"seed": data["args"].get("seed"), "total_timesteps": data["args"].get("total_timesteps"), **metadata},
     }
-    MeanPolicy(data["obs_dim"], len(data["action_low"]), data["hidden_size"]).load_state_dict(policy)  # fits, or raises
+    try:
+        MeanPolicy(data["obs_dim"], len(data["action_low"]), data["hidden_size"]).load_state_dict(policy)
+    except RuntimeError as err:
+        raise ValueError(f"{checkpoint}: the actor's weights do not fit the stated sizes: {err}") from None
     tmp = Path(f"{out}.tmp")
     torch.save(weights, tmp)
     tmp.replace(out)

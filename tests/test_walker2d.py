@@ -69,7 +69,11 @@ def test_bad_files_give_clear_errors_and_lose_nothing(tmp_path):
         load_policy(resized)
     with pytest.raises(FileNotFoundError):
         load_policy(tmp_path / "missing.pt")
-    assert corrupt.exists() and other.exists() and resized.exists() and not (tmp_path / "out.pt").exists()
+    no_policy = tmp_path / "no_policy.pt"
+    torch.save({k: v for k, v in weights.items() if k != "policy"}, no_policy)
+    with pytest.raises(ValueError, match="no_policy.pt is a damaged jirl-policy-weights-v1 file: it has no policy$"):
+        load_policy(no_policy)
+    assert corrupt.exists() and other.exists() and resized.exists() and no_policy.exists() and not (tmp_path / "out.pt").exists()
 
 
 def test_export_round_trip_from_a_sac_checkpoint(tmp_path):
@@ -90,3 +94,13 @@ def test_export_round_trip_from_a_sac_checkpoint(tmp_path):
         _, _, expected = actor.get_action(torch.from_numpy(obs).unsqueeze(0))
     np.testing.assert_allclose(baseline(obs), expected[0].numpy(), atol=1e-6)
     env.close()
+    saved = torch.load(checkpoint, weights_only=True)
+    no_args, resized = tmp_path / "no_args.cleanrl_model", tmp_path / "resized.cleanrl_model"
+    torch.save({k: v for k, v in saved.items() if k != "args"}, no_args)
+    torch.save({**saved, "hidden_size": 8}, resized)
+    for path, message in ((no_args, "is a damaged sac_continuous.py checkpoint: it has no args"),
+                          (resized, "the actor's weights do not fit the stated sizes")):  # fmt: skip
+        result = subprocess.run([sys.executable, "-m", "envs.walker2d", "export", str(path), "--out", str(tmp_path / "bad.pt")],
+                                cwd=ROOT, capture_output=True, text=True)  # fmt: skip
+        assert result.returncode == 2 and message in result.stderr and "Traceback" not in result.stderr, result.stderr
+    assert not (tmp_path / "bad.pt").exists() and not (tmp_path / "bad.pt.tmp").exists()
