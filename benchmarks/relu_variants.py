@@ -17,6 +17,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from side_by_side import checked
+
 ROOT = Path(__file__).resolve().parent.parent
 
 FUSED_LAYER = '''
@@ -80,7 +82,7 @@ def main() -> None:
         for rep in range(args.repeats):
             for name in names[rep % 3 :] + names[: rep % 3]:
                 cmd = [sys.executable, str(ROOT / "benchmarks" / "update_speed.py"), "--worker", "sac", str(paths[name]), str(width), str(args.steps)]
-                out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+                out = checked(subprocess.run(cmd, capture_output=True, text=True)).stdout
                 ms[name].append(float(out.strip().splitlines()[-1]) * 1000.0)
 
         def ratio(other: str) -> str:

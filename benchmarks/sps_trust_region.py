@@ -54,8 +54,8 @@ def main() -> None:
         sb3_worker(sys.argv[2], sys.argv[3], int(sys.argv[4]), int(sys.argv[5]))
         return
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--env-id", default="Pendulum-v1")
-    parser.add_argument("--algos", nargs="+", default=["ppo", "trpo"])
+    parser.add_argument("--env-id", default="Pendulum-v1", choices=sorted({env_id for _, env_id in SETTINGS}))
+    parser.add_argument("--algos", nargs="+", default=["ppo", "trpo"], choices=sorted({algo for algo, _ in SETTINGS}))
     parser.add_argument("--steps", type=int, default=40960)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--workdir", type=Path, default=ROOT / "benchmarks" / "results" / "sps_trust_region")

@@ -9,6 +9,7 @@ machine) and per wall-clock second.
 from __future__ import annotations
 
 import argparse
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -40,9 +41,8 @@ def main() -> None:
                 baseline.reset()
         rates.append(args.steps / (time.perf_counter() - start))
         cpu_rates.append(args.steps / (time.process_time() - cpu_start))
-    median = lambda values: sorted(values)[len(values) // 2]  # noqa: E731
     print(f"JetRacerTrack-v0, lane-follower actions, {args.steps} steps x {args.repeats} (medians): "
-          f"{median(cpu_rates):.0f} steps per CPU-second, {median(rates):.0f} steps per wall-clock second")  # fmt: skip
+          f"{statistics.median(cpu_rates):.0f} steps per CPU-second, {statistics.median(rates):.0f} steps per wall-clock second")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -120,6 +120,8 @@ def test_track_laps_refuses_zero_episodes(monkeypatch, capsys):
         ("sps_jirl_vs_sac", ["--learning-starts", "-1"], "--learning-starts must be at least 0"),
         ("sps_vs_sb3", ["--widths", "64", "0"], "--widths must be at least 1"),
         ("sps_trust_region", ["--steps", "0"], "--steps must be at least 1"),
+        ("sps_trust_region", ["--algos", "ppo", "sac"], "argument --algos: invalid choice: 'sac'"),  # was a KeyError after the first runs
+        ("sps_trust_region", ["--env-id", "Hopper-v4"], "argument --env-id: invalid choice: 'Hopper-v4'"),
         ("update_speed", ["--repeats", "0"], "--repeats must be at least 1"),  # each was a median of nothing
         ("relu_variants", ["--repeats", "0"], "--repeats must be at least 1"),
         ("track_speed", ["--repeats", "0"], "--repeats must be at least 1"),
@@ -136,3 +138,18 @@ def test_the_speed_and_choice_benchmarks_refuse_counts_out_of_range(tool, option
     with pytest.raises(SystemExit) as exit_info:
         importlib.import_module(tool).main()
     assert exit_info.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_relu_variants_stops_at_a_failed_measurement_showing_why(monkeypatch, tmp_path):
+    import subprocess
+
+    import relu_variants
+
+    def failing(cmd, **kwargs):
+        return subprocess.CompletedProcess(cmd, 1, stdout="", stderr="Traceback ...\nRuntimeError: the variant broke")
+
+    monkeypatch.setattr(relu_variants.subprocess, "run", failing)
+    monkeypatch.setattr(sys, "argv", ["relu_variants.py", "--widths", "8", "--repeats", "1", "--workdir", str(tmp_path)])
+    with pytest.raises(SystemExit, match="exited with 1:\nTraceback ...\nRuntimeError: the variant broke"):
+        relu_variants.main()
+    assert (tmp_path / "sac_copy.py").exists() and (tmp_path / "sac_fused.py").exists()
