@@ -203,6 +203,7 @@ class CarSession:
 
         self.args, self.mode, self.period = args, mode, 1.0 / args.control_hz
         self.stop_requested = False
+        self.estop_unsent = False  # set by the signal handler when the link is down; close() says it
         # Ctrl-C and SIGTERM e-stop the car while the session is open; close() puts the previous handlers back
         self._previous_handlers = {sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
         self.mapping = ActionMapping(min_throttle=args.min_throttle, max_throttle=args.max_throttle)
@@ -240,15 +241,18 @@ class CarSession:
 
     def _on_signal(self, *_) -> None:
         self.stop_requested = True
-        if getattr(self, "link", None) is not None:
-            self.estop()  # at once, not at the next tick
+        if getattr(self, "link", None) is not None and not self.link.estop():  # at once, not at the next tick
+            self.estop_unsent = True  # not printed here: that could re-enter a stderr write the signal interrupted
 
     def estop(self) -> bool:
         """E-stop the car; False, said on stderr, if the link is down and only the watchdog can stop it."""
         if self.link.estop():
             return True
-        print(f"{self.mode}: the e-stop could not be sent (the link is down); the controller's watchdog stops the car", file=sys.stderr)
+        self._say_estop_unsent()
         return False
+
+    def _say_estop_unsent(self) -> None:
+        print(f"{self.mode}: the e-stop could not be sent (the link is down); the controller's watchdog stops the car", file=sys.stderr)
 
     def observe(self) -> Optional[np.ndarray]:
         """Read the gamepad, advance the simulator (if any) one period and read the camera; None if the
@@ -372,6 +376,8 @@ class CarSession:
         if self.writer is not None:
             self.writer.close()
         self._restore_signals()
+        if self.estop_unsent:
+            self._say_estop_unsent()
 
     def _restore_signals(self) -> None:
         for sig, handler in self._previous_handlers.items():

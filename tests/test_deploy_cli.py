@@ -347,6 +347,8 @@ def test_ctrl_c_while_the_link_is_down_ends_the_training_cleanly_and_keeps_its_s
 
         session.link._send = unwritable  # the port is gone, not yet reopened
         os.kill(os.getpid(), signal.SIGINT)
+        assert session.stop_requested  # the handler has run
+        assert capsys.readouterr().err == ""  # and wrote nothing: a print there could re-enter an interrupted write
 
     at_period(monkeypatch, 50, link_down_then_ctrl_c)
     state = tmp_path / "train.pt"
