@@ -256,8 +256,6 @@ def test_a_lost_gamepad_raises_gamepad_lost_and_closes_quietly(tmp_path, monkeyp
 
 
 def test_training_e_stops_and_keeps_its_state_when_the_gamepad_is_lost(tmp_path, monkeypatch, capsys):
-    import os
-
     from deploy import io
 
     path = fifo_gamepad(tmp_path, monkeypatch)
