@@ -344,6 +344,7 @@ def test_ctrl_c_while_the_link_is_down_ends_the_training_cleanly_and_keeps_its_s
             raise OSError("not connected")
 
         session.link._send = unwritable  # the port is gone, not yet reopened
+        capsys.readouterr()  # what the run wrote so far
         os.kill(os.getpid(), signal.SIGINT)
         assert session.stop_requested  # the handler has run
         assert capsys.readouterr().err == ""  # and wrote nothing: a print there could re-enter an interrupted write
