@@ -469,6 +469,8 @@ def imitate(agent: Agent, obs: np.ndarray, actions: np.ndarray, returns: np.ndar
             stale += 1
         if best_mse < args.il_target_mse or stale >= args.il_patience:
             break
+    if best_state is None:  # every held-out MSE was NaN: nothing to keep
+        raise ValueError("behaviour cloning gave no finite held-out action error (non-finite observations, or --il-lr too large)")
     agent.actor_mean.load_state_dict(best_state)
     with torch.no_grad():
         agent.actor_logstd.fill_(float(np.log(args.il_init_std)))
@@ -602,7 +604,10 @@ if __name__ == "__main__":
         return_rms.update(data["running_returns"])
         value_targets = (value_targets / np.sqrt(return_rms.var + 1e-8)).astype(np.float32)
         writer.add_scalar("il/reward_scale", float(np.sqrt(return_rms.var + 1e-8)), 0)
-    il = imitate(agent, il_obs, data["actions"], value_targets, args, writer, rng)
+    try:
+        il = imitate(agent, il_obs, data["actions"], value_targets, args, writer, rng)
+    except ValueError as err:
+        raise SystemExit(f"{args.exp_name}: error: {err}")
     writer.add_scalar("il/env_steps", len(data["obs"]), 0)
     print(f"imitation: {len(data['obs'])} baseline steps, {il['epochs']} epochs, held-out action MSE {il['action_mse']:.2e}")
 

@@ -124,6 +124,21 @@ def test_imitation_clones_the_pendulum_baseline(script, tmp_path):
     assert value_error < 0.2 * value_error_before
 
 
+
+@pytest.mark.parametrize("script", [ppo, trpo], ids=["ppo_il", "trpo_il"])
+def test_imitation_that_never_fits_is_a_clear_error(script, tmp_path):
+    from torch.utils.tensorboard import SummaryWriter
+
+    obs = np.random.default_rng(0).normal(size=(200, 3)).astype(np.float32)
+    obs[:, 0] = np.nan  # a broken env: every held-out error is NaN, so no fit is ever the best
+    agent = script.Agent(3, 1, 16)
+    writer = SummaryWriter(str(tmp_path))
+    args = script.resolve_hyperparameters(script.Args(il_max_epochs=3))
+    with pytest.raises(ValueError, match="no finite held-out action error"):
+        script.imitate(agent, obs, np.zeros((200, 1), np.float32), np.zeros(200, np.float32), args, writer, np.random.default_rng(0))
+    writer.close()
+
+
 SHORT = {
     "ppo_il": ["--num-steps", "256", "--num-minibatches", "4", "--update-epochs", "2"],
     "trpo_il": ["--num-steps", "256", "--n-critic-updates", "2"],
