@@ -152,14 +152,21 @@ class SimWorld:
         self.env.reset(seed=seed)
         self.seed, self.resets = seed, 0
         self.off_track = False
+        self._laps_before_reset: list = []  # the env forgets its lap times when it is reset
 
     def tick(self) -> float:
         """One control period; returns the centre-line progress in m."""
         progress, self.off_track = self.env.drive(self.controller.steering, self.controller.throttle)
         if self.off_track:
+            self._laps_before_reset += self.info["lap_times"]
             self.resets += 1
             self.env.reset(seed=self.seed + self.resets)
         return progress
+
+    @property
+    def lap_times(self) -> list:
+        """Every lap completed since the world was made (simulated s), across the resets after lane departures."""
+        return self._laps_before_reset + self.info["lap_times"]
 
     def read(self) -> Frame:
         return self.env.camera_frame_bgr(), time.monotonic()

@@ -360,7 +360,7 @@ class CarSession:
             self.writer.add_scalar(f"link/rtt_{key}_ms", 1000 * value, step)
         self.writer.add_scalar("loop/frames_dropped", self.frames_dropped, step)
         if self.world is not None:
-            laps = self.world.info["lap_times"]
+            laps = self.world.lap_times
             for lap_time in laps[self.laps_logged :]:
                 self.writer.add_scalar("charts/lap_time", lap_time, step)
             self.laps_logged = len(laps)
@@ -448,7 +448,7 @@ def drive_and_report(args: Common, mode: str, policy: Callable[[np.ndarray], np.
 
 
 def report(session: CarSession, rewards: List[float], mode: str) -> None:
-    laps = session.world.info["lap_times"] if session.world is not None else []
+    laps = session.world.lap_times if session.world is not None else []
     print(f"{mode}: {len(rewards)} steps, mean reward per step {np.mean(rewards) if rewards else float('nan'):.4f}")
     if laps:
         print(f"{mode}: lap times {', '.join(f'{t:.2f}' for t in laps)} s")

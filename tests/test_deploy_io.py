@@ -1,4 +1,4 @@
-"""deploy.io's OpenCV cameras: frame conversion, a recorded video replayed, the reader thread's shutdown."""
+"""deploy.io: the OpenCV cameras (frame conversion, a recorded video replayed, the reader thread's shutdown) and the simulated world."""
 
 import time
 
@@ -124,3 +124,34 @@ def test_a_recorded_video_whose_format_changes_raises_camera_failed(monkeypatch)
     with pytest.raises(io.CameraFailed, match=r"^camera 'drive.avi' delivered a \(480, 640\) uint16 frame"):
         camera.read()
     assert camera.frames_read == 2
+
+
+def test_the_simulated_worlds_lap_times_survive_a_lane_departure():
+    class Controller:  # what a mock controller applies: here a centre-line follower reading the simulator's truth
+        steering, throttle = 0.0, 0.6
+
+    controller = Controller()
+    world = io.SimWorld(controller, seed=3)
+    try:
+
+        def follow(ticks: int) -> None:
+            for _ in range(ticks):
+                info = world.info
+                controller.steering = float(np.clip(-4.0 * info["cte"] - 1.5 * info["heading_error"], -1.0, 1.0))
+                world.tick()
+                assert not world.off_track
+
+        follow(700)
+        before = world.lap_times
+        assert len(before) == 3 and before == world.info["lap_times"]
+        controller.steering = 1.0  # full lock: the car leaves the lane and the world puts it back
+        for _ in range(40):
+            world.tick()
+            if world.off_track:
+                break
+        assert world.off_track and world.resets == 1 and world.info["lap_times"] == []
+        assert world.lap_times == before  # the env forgot them; the world did not
+        follow(800)
+        assert len(world.lap_times) > len(before) and world.lap_times[: len(before)] == before
+    finally:
+        world.close()
