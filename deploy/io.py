@@ -13,7 +13,7 @@ import os
 import struct
 import threading
 import time
-from typing import Dict, Optional, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -152,7 +152,7 @@ class SimWorld:
         self.env.reset(seed=seed)
         self.seed, self.resets = seed, 0
         self.off_track = False
-        self._laps_before_reset: list = []  # the env forgets its lap times when it is reset
+        self._laps_before_reset: List[float] = []  # the env forgets its lap times when it is reset
 
     def tick(self) -> float:
         """One control period; returns the centre-line progress in m."""
@@ -164,7 +164,7 @@ class SimWorld:
         return progress
 
     @property
-    def lap_times(self) -> list:
+    def lap_times(self) -> List[float]:
         """Every lap completed since the world was made (simulated s), across the resets after lane departures."""
         return self._laps_before_reset + self.info["lap_times"]
 

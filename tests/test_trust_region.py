@@ -124,7 +124,6 @@ def test_imitation_clones_the_pendulum_baseline(script, tmp_path):
     assert value_error < 0.2 * value_error_before
 
 
-
 @pytest.mark.parametrize("script", [ppo, trpo], ids=["ppo_il", "trpo_il"])
 def test_imitation_that_never_fits_is_a_clear_error(script, tmp_path):
     from torch.utils.tensorboard import SummaryWriter
