@@ -7,7 +7,7 @@ tests drive it with a fake clock. It is reachable three ways:
   port on a real clock;
 - `PtyController`, a thread serving the controller on a pseudo-terminal, so the real `serial.Serial`
   path is exercised, unplugging included;
-- wrapped by `deploy.sim` to drive the simulated car. Runs on Python 3.8.
+- read by `deploy.io.SimWorld`, whose car drives with the applied outputs. Runs on Python 3.8.
 """
 
 from __future__ import annotations
@@ -59,9 +59,9 @@ class MockController:
         self._send(p.TELEMETRY, (seq, kind, p.to_thousandths(self.steering), p.to_thousandths(self.throttle), self.status(), uptime))
         self.last_telemetry = now
 
-    def _nack(self, message: p.Message, reason: int) -> None:
+    def _nack(self, message: p.Message, reason: int, now: float) -> None:
         self._send(p.NACK, (message.seq, message.type, reason))
-        self.log.append((self.last_command_time, f"NACK {message} {p.REASONS[reason]}"))
+        self.log.append((now, f"NACK {message} {p.REASONS[reason]}"))
 
     def _neutral(self) -> None:
         self.steering = self.throttle = 0.0
@@ -77,7 +77,7 @@ class MockController:
             self._handle(message, now)
         for message, why in self.decoder.refusable:
             reason = {"type": p.UNKNOWN_TYPE, "version": p.BAD_VERSION}.get(why, p.BAD_LENGTH)
-            self._nack(message, reason)
+            self._nack(message, reason, now)
         self.decoder.refusable.clear()
 
     def _handle(self, message: p.Message, now: float) -> None:
@@ -87,7 +87,7 @@ class MockController:
         elif kind == p.ARM:
             watchdog_ms, cap = message.fields
             if not (MIN_WATCHDOG_MS <= watchdog_ms <= MAX_WATCHDOG_MS and cap <= 1000):
-                return self._nack(message, p.OUT_OF_RANGE)
+                return self._nack(message, p.OUT_OF_RANGE, now)
             self.armed, self.estop_latched, self.watchdog_tripped = True, False, False  # re-arming clears the latch
             self.watchdog_period, self.throttle_cap = watchdog_ms / 1000.0, cap / 1000.0
             self.last_command_time = now
@@ -96,12 +96,12 @@ class MockController:
             self._telemetry(now, message)
         elif kind == p.DRIVE:
             if self.estop_latched:
-                return self._nack(message, p.ESTOP_LATCHED)
+                return self._nack(message, p.ESTOP_LATCHED, now)
             if not self.armed:
-                return self._nack(message, p.NOT_ARMED)
+                return self._nack(message, p.NOT_ARMED, now)
             steering, throttle = message.fields
             if abs(steering) > 1000 or abs(throttle) > 1000:
-                return self._nack(message, p.OUT_OF_RANGE)
+                return self._nack(message, p.OUT_OF_RANGE, now)
             self.steering = steering / 1000.0
             self.throttle = max(-self.throttle_cap, min(self.throttle_cap, throttle / 1000.0))
             self.last_command_time = now
@@ -122,7 +122,7 @@ class MockController:
             self.log.append((now, "disarmed"))
             self._telemetry(now, message)
         else:  # a controller-to-host type sent to the controller
-            self._nack(message, p.UNKNOWN_TYPE)
+            self._nack(message, p.UNKNOWN_TYPE, now)
 
     def poll(self, now: float) -> None:
         """Advance time: the watchdog, and unsolicited telemetry while armed."""

@@ -115,15 +115,16 @@ def test_throttle_cap_estop_latch_and_nack_reasons():
     assert c.estop_latched and not c.armed and c.throttle == 0.0
     (nack,) = send(c, p.Message(p.DRIVE, 6, (0, 100)), 0.03)
     assert nack.fields == (6, p.DRIVE, p.ESTOP_LATCHED)
+    assert c.log[-1] == (0.03, "NACK DRIVE#6(0, 100) e-stop latched")  # logged when refused, not at the last command
     send(c, p.Message(p.ARM, 7, (250, 400)), 0.04)  # re-arming clears the latch
     assert c.armed and not c.estop_latched
     (nack,) = send(c, p.Message(p.TELEMETRY, 8, (0, 0, 0, 0, 0, 0)), 0.05)
     assert nack.fields == (8, p.TELEMETRY, p.UNKNOWN_TYPE)
     (nack,) = send_body(c, bytes([p.VERSION, p.DRIVE, 9, 1, 7]), 0.06)  # DRIVE with a 1-byte payload
     assert nack.fields == (9, p.DRIVE, p.BAD_LENGTH)
+    assert c.log[-1] == (0.06, "NACK DRIVE#9() bad length")
     (info,) = send(c, p.Message(p.HELLO, 10), 0.07)
     assert info.type == p.INFO and info.fields[0] == p.VERSION
-
 
 
 @pytest.mark.parametrize(
@@ -141,6 +142,7 @@ def test_a_frame_with_a_good_crc_but_a_bad_header_is_refused_and_changes_nothing
     (nack,) = send_body(c, bytes([version, kind, 9, length]) + payload, 0.02)
     assert nack.type == p.NACK and nack.fields == (9, kind, reason)
     assert c.armed and (c.steering, c.throttle) == (0.1, 0.3)
+
 
 @pytest.fixture
 def mock_link():
