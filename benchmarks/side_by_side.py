@@ -6,9 +6,9 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import re
-import sys
 import statistics
 import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Callable, Sequence
