@@ -41,6 +41,7 @@ class LaneFollower:
     def __call__(self, observation: np.ndarray) -> np.ndarray:
         error = self.lateral_error(observation)
         if error is None:  # lost the lane: hold the wheel straight and crawl
+            self.previous_error = None  # an error from before the gap is no rate of change after it
             return np.array([0.0, THROTTLE_ACTION], dtype=np.float32)
         change = 0.0 if self.previous_error is None else error - self.previous_error
         self.previous_error = error

@@ -100,6 +100,27 @@ def test_baseline_laps_without_leaving_the_lane_and_laps_are_counted(clockwise):
     assert 12.0 < lap_time < 15.5  # measured 13.75 s; the paper's car: 13.5 s
 
 
+def test_the_lane_follower_steers_by_pd_and_forgets_its_error_when_it_loses_the_lane():
+    from envs.car_interface import MASK_SHAPE
+    from envs.lane_follower import KD, KP, THROTTLE_ACTION, LaneFollower
+
+    def lane_at(columns):
+        mask = np.zeros(MASK_SHAPE, dtype=np.float32)
+        mask[:, columns] = 1.0
+        return np.concatenate([mask.ravel(), [0.0, 0.0]]).astype(np.float32)
+
+    follower = LaneFollower()
+    right = lane_at([9, 10])  # centroid at column 10 of 14: error (10 - 7) / 7
+    assert follower(right)[0] == pytest.approx(-KP * 3 / 7)  # first frame: no rate of change yet
+    centred = lane_at([6, 7])  # centroid at 7: error 0, a change of -3/7
+    assert follower(centred)[0] == pytest.approx(KD * 3 / 7)
+    follower(right)
+    lost = follower(lane_at([]))
+    assert lost.tolist() == [0.0, THROTTLE_ACTION]  # straight and slow
+    # after the gap, proportional only: the error from before it would have kicked the wheel by KD * 3/7
+    assert follower(centred)[0] == pytest.approx(0.0)
+
+
 def test_backward_crossing_uncounts_a_lap():
     env = JetRacerTrackEnv(random_start=False)
     env.reset(seed=0)
