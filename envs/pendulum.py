@@ -30,7 +30,7 @@ def pendulum_swing_up(obs: np.ndarray) -> np.ndarray:
         torque = -(KP * theta + KD * w)
     else:
         energy = 0.5 * w * w + TARGET_ENERGY * cos_th
-        # sign(w) breaks the tie at rest at the bottom, where w = 0 would give no torque at all
+        # at rest (w = 0) sign(w) would give no torque at all: push one way to start the swing
         direction = np.sign(w) if w != 0.0 else 1.0
         torque = np.clip(PUMP_GAIN * (TARGET_ENERGY - energy) * direction, -PUMP_TORQUE, PUMP_TORQUE)
     return np.array([np.clip(torque, -MAX_TORQUE, MAX_TORQUE)], dtype=np.float32)
