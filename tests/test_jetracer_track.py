@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from envs import get_baseline, make_env
-from envs.car_interface import OBS_SIZE, ActionMapping, action_to_commands, preprocess
+from envs.car_interface import MASK_SHAPE, OBS_SIZE, ActionMapping, action_to_commands, preprocess
 from envs.jetracer_track import JetRacerTrackEnv
+from envs.lane_follower import KD, KP, THROTTLE_ACTION, LaneFollower
 from envs.track import TrackSpec
 
 
@@ -101,9 +102,6 @@ def test_baseline_laps_without_leaving_the_lane_and_laps_are_counted(clockwise):
 
 
 def test_the_lane_follower_steers_by_pd_and_forgets_its_error_when_it_loses_the_lane():
-    from envs.car_interface import MASK_SHAPE
-    from envs.lane_follower import KD, KP, THROTTLE_ACTION, LaneFollower
-
     def lane_at(columns):
         mask = np.zeros(MASK_SHAPE, dtype=np.float32)
         mask[:, columns] = 1.0
