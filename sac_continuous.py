@@ -515,8 +515,9 @@ if __name__ == "__main__":
 
     # Baseline measurement on the evaluation seeds, so it compares with eval/episodic_return
     estimator, baseline_reward_per_step, baseline_seconds = "off", 0.0, 0.0
+    shadow_env = None  # runs the baseline beside the training env, when needed
     if baseline is not None and args.regret_estimator != "off":
-        shadow_env = make_env(args.env_id, args.seed)  # runs the baseline beside the training env
+        shadow_env = make_env(args.env_id, args.seed)
         try:
             traces = [baseline_rollout(shadow_env, baseline, args.seed + EVAL_SEED_OFFSET + i)[1] for i in range(args.baseline_eval_episodes)]
         except ValueError as err:
@@ -612,4 +613,6 @@ if __name__ == "__main__":
         print(f"eval: mean return {np.mean(episodic_returns):.1f} over {len(episodic_returns)} episodes")
 
     env.close()
+    if shadow_env is not None:
+        shadow_env.close()
     writer.close()

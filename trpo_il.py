@@ -781,4 +781,5 @@ if __name__ == "__main__":
         print(f"eval: mean return {np.mean(episodic_returns):.1f} over {len(episodic_returns)} episodes")
 
     env.close()
+    shadow_env.close()
     writer.close()

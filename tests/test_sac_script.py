@@ -12,6 +12,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from gymnasium.envs.classic_control.pendulum import PendulumEnv
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from conftest import ROOT, load_script, small_checkpoint
@@ -177,6 +178,36 @@ def test_capture_video_without_moviepy_is_a_clear_error_that_writes_nothing(tmp_
     with pytest.raises(ValueError, match=r"--capture-video needs moviepy \(pip install moviepy\)"):
         load_script(script).make_env("Pendulum-v1", 1, capture_video=True, run_name="run")
     assert not (tmp_path / "videos").exists()
+
+
+SHORT_RUNS = {
+    "sac_continuous": ["--total-timesteps", "250", "--learning-starts", "100", *TINY],
+    "jirl_sac_continuous": ["--total-timesteps", "250", "--learning-starts", "100", *TINY],
+    "ppo_il": ["--total-timesteps", "256", "--num-steps", "128", "--num-minibatches", "2", "--update-epochs", "1", "--il-steps", "400",
+               "--il-max-epochs", "2", "--hidden-size", "16"],  # fmt: skip
+    "trpo_il": ["--total-timesteps", "256", "--num-steps", "128", "--n-critic-updates", "1", "--il-steps", "400", "--il-max-epochs", "2",
+                "--hidden-size", "16"],  # fmt: skip
+}
+
+
+@pytest.mark.parametrize("script, regret", [(script, "auto") for script in SHORT_RUNS] + [("sac_continuous", "off")])
+def test_a_run_closes_every_env_it_opens(tmp_path, monkeypatch, script, regret):
+    # training, shadow (the baseline's) and evaluation envs: a PyBullet env left open keeps its physics
+    # server (about 29 MB for Walker2D), so in-process sweeps would leak one per run
+    opened, closed = [], []
+    init, close = PendulumEnv.__init__, PendulumEnv.close
+    monkeypatch.setattr(PendulumEnv, "__init__", lambda self, *a, **k: (opened.append(self), init(self, *a, **k))[1])
+    monkeypatch.setattr(PendulumEnv, "close", lambda self: (closed.append(self), close(self))[1])
+    monkeypatch.chdir(tmp_path)
+    args = [*SHORT_RUNS[script], "--regret-estimator", regret, "--baseline-eval-episodes", "1", "--save-model", "--eval-episodes", "1"]
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
+    g = runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
+    if regret == "off":  # SAC needs no baseline then
+        assert g["shadow_env"] is None and len(opened) == 2
+    else:
+        assert len(opened) >= 3 and any(env is g["shadow_env"].unwrapped for env in opened)
+    unclosed = [env for env in opened if not any(env is c for c in closed)]
+    assert not unclosed, f"{len(unclosed)} of {len(opened)} envs left open"
 
 
 def test_the_readmes_saved_policy_snippet_runs(tmp_path, sac):
