@@ -17,16 +17,16 @@ Runs on the car's Python 3.8 (JetPack 5) and newer.
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 import signal
 import statistics
 import sys
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
-import copy
-import threading
 from typing import Callable, List, Literal, Optional, Tuple
 
 import numpy as np
@@ -37,7 +37,7 @@ import jirl_sac_continuous as jirl  # noqa: E402
 from deploy import protocol as p  # noqa: E402
 from deploy.io import CameraFailed, Gamepad, GamepadLost, SimWorld, open_camera  # noqa: E402
 from deploy.link import HostLink  # noqa: E402
-from envs.car_interface import OBS_SIZE, ActionMapping, action_to_commands, preprocess  # noqa: E402
+from envs.car_interface import OBS_SIZE, START_ACTION, ActionMapping, action_to_commands, preprocess  # noqa: E402
 from envs.lane_follower import LaneFollower  # noqa: E402
 
 TRAIN_STATE_FORMAT = "jirl-car-training-v2"  # v2: the agent's twin critics as one ensemble
@@ -225,7 +225,7 @@ class CarSession:
         except (ValueError, OSError) as err:
             self.close()
             raise SystemExit(f"{mode}: error: {err}") from None
-        self.previous_action = np.array([0.0, -1.0], dtype=np.float32)
+        self.previous_action = np.array(START_ACTION, dtype=np.float32)
         self.frames_dropped = 0
         self.stale_periods = 0  # control periods in a row without a fresh frame (periods, not time: a training pause is not a gap)
         self.laps_logged = 0
@@ -262,6 +262,8 @@ class CarSession:
             return None
         if self.world is not None:
             self.world.tick()
+            if self.world.off_track:  # put back at rest: observed as JetRacerTrack-v0's reset observes it
+                self.previous_action = np.array(START_ACTION, dtype=np.float32)
         try:
             frame, captured = self.camera.read()
         except CameraFailed as err:  # no frame will come: stop now rather than after CAMERA_LOST_S of stale ones
@@ -560,7 +562,7 @@ def train(args: Train) -> dict:
     shadow = None  # sim-in-the-loop: the baseline drives a twin car from the same poses, for the paired regret
     if session.world is not None:
         shadow = SimWorld(_NullController(), seed=args.seed)
-        shadow_follower, shadow_previous = LaneFollower(), np.array([0.0, -1.0], dtype=np.float32)
+        shadow_follower, shadow_previous = LaneFollower(), np.array(START_ACTION, dtype=np.float32)
     guidance = hp.guidance_steps if hp.guidance_steps is not None else args.total_steps // 2
     previous: Optional[tuple] = None  # (obs, stored action, rl_action, rl_acted)
     obs = None

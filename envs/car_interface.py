@@ -16,6 +16,7 @@ CROP_TOP = 32  # rows above the road (horizon, room) cut off, as on the authors'
 MASK_SHAPE = (10, 14)  # rows, cols of the lane mask the policy sees (measured choice: BENCHMARKS.md)
 LANE_MAX_BRIGHTNESS = 90  # grey level at or below which a pixel counts as the dark lane surface
 OBS_SIZE = MASK_SHAPE[0] * MASK_SHAPE[1] + 2  # mask, then the previous action (steering, throttle)
+START_ACTION = (0.0, -1.0)  # the previous action at an episode start, the car at rest: wheel straight, slowest throttle
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ from typing import Any, Optional
 import gymnasium as gym
 import numpy as np
 
-from envs.car_interface import FRAME_SHAPE, OBS_SIZE, ActionMapping, action_to_commands, preprocess
+from envs.car_interface import FRAME_SHAPE, OBS_SIZE, START_ACTION, ActionMapping, action_to_commands, preprocess
 from envs.track import TrackSpec, wrap_angle
 
 
@@ -167,7 +167,7 @@ class JetRacerTrackEnv(gym.Env):
         self._state = np.array([x, y, yaw, 0.0, 0.0])
         self._s, self._progress, self._time = self.track.project(x, y)[0], 0.0, 0.0
         self._laps, self._lap_times, self._lap_started = 0, [], None
-        self._previous_action = np.array([0.0, -1.0], dtype=np.float32)
+        self._previous_action = np.array(START_ACTION, dtype=np.float32)
         if self.randomize_lighting:
             tint = self.np_random.uniform(0.65, 1.0) * self.np_random.uniform(0.9, 1.0, size=3)
             self._client.changeVisualShape(self._ground, -1, rgbaColor=[*tint, 1.0])

@@ -45,6 +45,22 @@ def test_a_stale_camera_stops_the_car(tmp_path):
     assert controller.throttle == 0.0 and controller.estop_latched  # close(): STOP then ESTOP
 
 
+def test_after_a_lane_departure_the_car_observes_what_the_simulators_reset_gives(tmp_path):
+    session = jetracer.CarSession(jetracer.Baseline(log_dir=str(tmp_path)), "depart")
+    try:
+        for _ in range(200):  # full left at full throttle leaves the lane within a few seconds
+            obs = session.observe()
+            if session.world.off_track:
+                break
+            session.act(np.array([1.0, 1.0]))
+        assert session.world.off_track and session.world.resets == 1
+        expected, _ = session.world.env.reset(seed=session.world.seed + session.world.resets)  # the pose it was put back at
+        np.testing.assert_array_equal(obs, expected)  # the previous action is the reset's, not the departing turn's
+        assert tuple(obs[-2:]) == jetracer.START_ACTION
+    finally:
+        session.close()
+
+
 def test_train_writes_a_checkpoint_and_resumes_from_it(tmp_path):
     state = tmp_path / "train.pt"
     common = ["--train-every", "40", "--gradient-steps", "5", "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST]
