@@ -195,9 +195,18 @@ def test_a_run_closes_every_env_it_opens(tmp_path, monkeypatch, script, regret):
     # training, shadow (the baseline's) and evaluation envs: a PyBullet env left open keeps its physics
     # server (about 29 MB for Walker2D), so in-process sweeps would leak one per run
     opened, closed = [], []
-    init, close = PendulumEnv.__init__, PendulumEnv.close
-    monkeypatch.setattr(PendulumEnv, "__init__", lambda self, *a, **k: (opened.append(self), init(self, *a, **k))[1])
-    monkeypatch.setattr(PendulumEnv, "close", lambda self: (closed.append(self), close(self))[1])
+    real_init, real_close = PendulumEnv.__init__, PendulumEnv.close
+
+    def recording_init(self, *args, **kwargs):
+        opened.append(self)
+        real_init(self, *args, **kwargs)
+
+    def recording_close(self):
+        closed.append(self)
+        real_close(self)
+
+    monkeypatch.setattr(PendulumEnv, "__init__", recording_init)
+    monkeypatch.setattr(PendulumEnv, "close", recording_close)
     monkeypatch.chdir(tmp_path)
     args = [*SHORT_RUNS[script], "--regret-estimator", regret, "--baseline-eval-episodes", "1", "--save-model", "--eval-episodes", "1"]
     monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
