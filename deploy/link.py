@@ -80,7 +80,8 @@ class HostLink:
         self.round_trips: Deque[float] = deque(maxlen=1000)
         self.telemetry: Optional[Telemetry] = None
         self.info: Optional[p.Message] = None
-        self.nacks: List[p.Message] = []
+        self.nacks: Deque[p.Message] = deque(maxlen=256)  # the latest refusals, for diagnostics
+        self.decoder = p.FrameDecoder()  # its `dropped` counts the frames lost since the port was last opened
         self.reconnects = 0
         self._acks: Dict[int, int] = {}  # acknowledged seq -> status in its telemetry (seq numbers wrap at 256)
         self.connected = threading.Event()
@@ -223,7 +224,6 @@ class HostLink:
             self._stop_event.wait(max(0.0, next_time - self._clock()))
 
     def _receive_loop(self) -> None:
-        decoder = p.FrameDecoder()
         while not self._stop_event.is_set():
             try:
                 port = self._port
@@ -234,11 +234,12 @@ class HostLink:
                 if self._stop_event.is_set():
                     return
                 self._reconnect()
-                decoder = p.FrameDecoder()
+                self.decoder = p.FrameDecoder()
                 continue
             if data:
-                for message in decoder.feed(data):
+                for message in self.decoder.feed(data):
                     self._handle(message)
+                self.decoder.refusable.clear()  # only a controller answers those; `dropped` still counts them
 
     def _handle(self, message: p.Message) -> None:
         now = self._clock()

@@ -1,9 +1,11 @@
 """deploy/: the serial protocol, the mock firmware's state machine, and the host link over mock ports and a pty."""
 
+import struct
 import time
 
 import pytest
 import serial
+from cobs import cobs
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -252,6 +254,47 @@ def test_a_refused_drive_tells_the_link_that_the_controller_restarted(mock_link)
     time.sleep(0.1)
     assert len(mock_link.nacks) == refused, "no DRIVE is sent to a controller believed unarmed"
     assert mock_link.arm() and mock_link.armed
+
+
+class FloodPort:
+    """A controller that answers every read with a NACK and a frame of a type this host does not know
+    (good CRC, as from newer firmware), `frames` times, then with one TELEMETRY, then nothing."""
+
+    def __init__(self, frames):
+        self.frames, self.reads = frames, 0
+
+    def write(self, data):
+        return len(data)
+
+    def read(self, size):
+        self.reads += 1
+        if self.reads > self.frames + 1:
+            time.sleep(0.001)
+            return b""
+        if self.reads == self.frames + 1:
+            return p.encode(p.Message(p.TELEMETRY, 0, (0, 0, 0, 0, 0, 12345)))
+        seq = (self.reads - 1) & 0xFF
+        unknown = bytes([p.VERSION, 0x84, seq, 0])
+        unknown = cobs.encode(unknown + struct.pack("<H", p.crc16(unknown))) + p.DELIMITER
+        return unknown + p.encode(p.Message(p.NACK, seq, (seq, p.DRIVE, p.BAD_LENGTH)))
+
+    def close(self):
+        pass
+
+
+def test_a_link_refused_for_hours_keeps_a_bounded_history():
+    port = FloodPort(frames=3000)
+    link = HostLink("flood://", opener=lambda url, timeout: port).start()
+    try:
+        assert wait_until(lambda: link.telemetry is not None, timeout=10.0)  # the stream's last frame: all before it handled
+        assert link.telemetry.uptime_ms == 12345
+        assert len(link.nacks) == 256
+        assert link.nacks.maxlen == 256
+        assert link.nacks[-1].fields == ((3000 - 1) & 0xFF, p.DRIVE, p.BAD_LENGTH)  # the latest are the ones kept
+        assert link.decoder.dropped == {"type": 3000}  # every unknown frame counted, none kept
+        assert link.decoder.refusable == []
+    finally:
+        link.close()
 
 
 def test_pty_link_survives_an_unplug_and_never_rearms_itself():
