@@ -1,11 +1,9 @@
 """deploy/: the serial protocol, the mock firmware's state machine, and the host link over mock ports and a pty."""
 
-import struct
 import time
 
 import pytest
 import serial
-from cobs import cobs
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -82,9 +80,13 @@ def send(controller, message, now):
     return frames(controller)
 
 
+def frame_body(body: bytes) -> bytes:
+    """A raw body framed with a good CRC, whatever its header says (p.encode only writes valid ones)."""
+    return p.cobs.encode(body + p.crc16(body).to_bytes(2, "little")) + p.DELIMITER
+
+
 def send_body(controller, body: bytes, now):
-    """Frame a raw body with a good CRC, whatever its header says (p.encode only writes valid ones)."""
-    controller.receive(p.cobs.encode(body + p.crc16(body).to_bytes(2, "little")) + p.DELIMITER, now)
+    controller.receive(frame_body(body), now)
     return frames(controller)
 
 
@@ -274,9 +276,7 @@ class FloodPort:
         if self.reads == self.frames + 1:
             return p.encode(p.Message(p.TELEMETRY, 0, (0, 0, 0, 0, 0, 12345)))
         seq = (self.reads - 1) & 0xFF
-        unknown = bytes([p.VERSION, 0x84, seq, 0])
-        unknown = cobs.encode(unknown + struct.pack("<H", p.crc16(unknown))) + p.DELIMITER
-        return unknown + p.encode(p.Message(p.NACK, seq, (seq, p.DRIVE, p.BAD_LENGTH)))
+        return frame_body(bytes([p.VERSION, 0x84, seq, 0])) + p.encode(p.Message(p.NACK, seq, (seq, p.DRIVE, p.BAD_LENGTH)))
 
     def close(self):
         pass
