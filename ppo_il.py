@@ -374,6 +374,8 @@ def imitate(agent: Agent, obs: np.ndarray, actions: np.ndarray, returns: np.ndar
     """Behaviour cloning of the policy mean with held-out early stopping, then the exploration std,
     then the value function fitted to the baseline's returns (so the first update is not destructive)."""
     n = len(obs)
+    if n < 2:  # an env of one-step episodes with --il-steps 1: nothing left to fit once a step is held out
+        raise ValueError(f"imitation needs at least 2 baseline steps (one is held out), got {n}; raise --il-steps")
     order = rng.permutation(n)
     held_out, fit = order[: max(1, n // 10)], order[max(1, n // 10) :]
     x, y, g = torch.from_numpy(obs), torch.from_numpy(actions), torch.from_numpy(returns).unsqueeze(1)

@@ -138,6 +138,17 @@ def test_imitation_that_never_fits_is_a_clear_error(script, tmp_path):
     writer.close()
 
 
+@pytest.mark.parametrize("script", [ppo, trpo], ids=["ppo_il", "trpo_il"])
+def test_imitation_of_a_single_step_is_a_clear_error(script, tmp_path):
+    from torch.utils.tensorboard import SummaryWriter
+
+    writer = SummaryWriter(str(tmp_path))
+    args = script.resolve_hyperparameters(script.Args(il_max_epochs=3))
+    with pytest.raises(ValueError, match="at least 2 baseline steps"):  # one step is held out, none is left to fit
+        script.imitate(script.Agent(3, 1, 16), np.zeros((1, 3), np.float32), np.zeros((1, 1), np.float32), np.zeros(1, np.float32), args, writer, np.random.default_rng(0))
+    writer.close()
+
+
 SHORT = {
     "ppo_il": ["--num-steps", "256", "--num-minibatches", "4", "--update-epochs", "2"],
     "trpo_il": ["--num-steps", "256", "--n-critic-updates", "2"],
@@ -225,6 +236,51 @@ def test_script_copied_alone_runs_with_a_user_baseline(name, tmp_path):
     out = run_script(tmp_path / f"{name}.py", args, tmp_path, env)
     assert out.returncode == 0, out.stderr
     assert "baseline regret estimator: paired" in out.stdout
+
+
+ONE_STEP_ENV = """
+import gymnasium as gym
+import numpy as np
+
+
+class Bandit(gym.Env):
+    \"\"\"A contextual bandit: every episode is one step, rewarded for matching the context.\"\"\"
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (1,))
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,))
+
+    def __init__(self, render_mode=None):
+        self.render_mode = render_mode
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.context = self.np_random.uniform(-1.0, 1.0, (1,)).astype(np.float32)
+        return self.context.copy(), {}
+
+    def step(self, action):
+        return self.context.copy(), -float(abs(action[0] - self.context[0])), True, False, {}
+
+
+gym.register("Bandit-v0", entry_point=Bandit)
+
+
+def match(obs):
+    return obs
+"""
+
+
+@pytest.mark.parametrize("name", ["ppo_il", "trpo_il"])
+def test_one_step_episodes_need_two_imitation_steps(name, tmp_path):
+    (tmp_path / "bandit.py").write_text(ONE_STEP_ENV)
+    env = os.environ | {"PYTHONPATH": os.pathsep.join([str(tmp_path), str(ROOT)])}
+    common = [*SHORT[name], "--env-id", "bandit:Bandit-v0", "--baseline", "bandit:match", "--total-timesteps", "256",
+              "--il-max-epochs", "5", "--hidden-size", "16", "--baseline-eval-episodes", "2"]  # fmt: skip
+    out = run_script(ROOT / f"{name}.py", [*common, "--il-steps", "1"], tmp_path, env)
+    assert out.returncode != 0 and "imitation needs at least 2 baseline steps (one is held out), got 1" in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1
+    out = run_script(ROOT / f"{name}.py", [*common, "--il-steps", "2"], tmp_path, env)
+    assert out.returncode == 0, out.stderr
+    assert "imitation: 2 baseline steps" in out.stdout and "baseline: return 0.0" in out.stdout
 
 
 @pytest.mark.parametrize("name", ["ppo_il", "trpo_il"])
