@@ -57,7 +57,7 @@ class Args:
     env_id: str = "Pendulum-v1"
     """the id of the environment (any Gymnasium env with a Box action space)"""
     total_timesteps: int = 100_000
-    """env steps of the RL phase (the imitation phase's steps come on top, logged as il/env_steps)"""
+    """env steps of the RL phase in whole rollouts: rounded down to a multiple of --num-steps, at least one (the imitation phase's steps come on top, logged as il/env_steps)"""
     learning_rate: Optional[float] = None
     """the learning rate of the optimizer (Pendulum 1e-3, Lunar Lander 3e-4)"""
     num_steps: Optional[int] = None

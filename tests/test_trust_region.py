@@ -157,7 +157,7 @@ SHORT = {
 
 @pytest.mark.parametrize("name", ["ppo_il", "trpo_il"])
 def test_end_to_end_logs_saves_and_evaluates(name, tmp_path):
-    args = [*SHORT[name], "--total-timesteps", "512", "--il-steps", "600", "--il-max-epochs", "20",
+    args = [*SHORT[name], "--total-timesteps", "700", "--il-steps", "600", "--il-max-epochs", "20",
             "--hidden-size", "16", "--save-model", "--eval-episodes", "2", "--baseline-eval-episodes", "2"]  # fmt: skip
     out = run_script(ROOT / f"{name}.py", args, tmp_path)
     assert out.returncode == 0, out.stderr
@@ -169,7 +169,7 @@ def test_end_to_end_logs_saves_and_evaluates(name, tmp_path):
         assert key in logged, key
         assert np.all(np.isfinite(logged[key])), key
     assert logged["il/env_steps"] == [600.0]
-    assert len(logged["charts/SPS"]) == 2  # two rollouts of 256 steps
+    assert len(logged["charts/SPS"]) == 2  # 700 steps round down to two whole rollouts of 256
     model = next(p for p in run_dir.glob("*.cleanrl_model") if not p.name.endswith("_cloned.cleanrl_model"))
     script = load_script(name)
     returns = script.evaluate(str(model), "Pendulum-v1", 2, 1)
@@ -273,7 +273,7 @@ def match(obs):
 def test_one_step_episodes_need_two_imitation_steps(name, tmp_path):
     (tmp_path / "bandit.py").write_text(ONE_STEP_ENV)
     env = os.environ | {"PYTHONPATH": os.pathsep.join([str(tmp_path), str(ROOT)])}
-    common = [*SHORT[name], "--env-id", "bandit:Bandit-v0", "--baseline", "bandit:match", "--total-timesteps", "256",
+    common = [*SHORT[name], "--env-id", "bandit:Bandit-v0", "--baseline", "bandit:match", "--total-timesteps", "100",
               "--il-max-epochs", "5", "--hidden-size", "16", "--baseline-eval-episodes", "2"]  # fmt: skip
     out = run_script(ROOT / f"{name}.py", [*common, "--il-steps", "1"], tmp_path, env)
     assert out.returncode != 0 and "imitation needs at least 2 baseline steps (one is held out), got 1" in out.stderr
@@ -281,6 +281,7 @@ def test_one_step_episodes_need_two_imitation_steps(name, tmp_path):
     out = run_script(ROOT / f"{name}.py", [*common, "--il-steps", "2"], tmp_path, env)
     assert out.returncode == 0, out.stderr
     assert "imitation: 2 baseline steps" in out.stdout and "baseline: return 0.0" in out.stdout
+    assert out.stdout.count("SPS:") == 1  # 100 steps round up to one whole rollout of 256
 
 
 @pytest.mark.parametrize("name", ["ppo_il", "trpo_il"])
