@@ -17,9 +17,11 @@ JIRL_PHASES = {1: (100.0, 50.0, 0.0), 2: (120.0, 30.0, 10.0), 3: (80.0, 40.0, 5.
 TOTALS = {"sac": {1: 2000.0, 2: 2400.0, 3: 1900.0}, "ppo_il": {1: 900.0, 2: 800.0, 3: 1000.0}, "trpo_il": {1: 1500.0, 2: 1600.0, 3: 1400.0}}
 
 
-def write_run(workdir, env, method, seed, total, phases=None):
+def write_run(workdir, env, method, seed, total, phases=None, rollout=None):
     folder = reproduce.run_dir(workdir, env, method, seed)
     writer = SummaryWriter(str(folder / "runs" / f"{env}__{method}__{seed}"))
+    for step in range(rollout, 1001, rollout) if rollout else ():  # PPO/TRPO+IL log SPS after each whole rollout
+        writer.add_scalar("charts/SPS", 300, step)
     for step in range(1, 11):  # episodes of 100 steps earning -1 per step at first, then -0.5
         writer.add_scalar("charts/episodic_return", -100.0 if step < 6 else -50.0, step * 100)
         writer.add_scalar("charts/episodic_length", 100, step * 100)
@@ -63,6 +65,18 @@ def test_table_and_figures_on_synthetic_logs(tmp_path):
     assert paths[0].exists() and paths[0].stat().st_size > 10_000
     curve = reproduce.reward_per_step_curve(results["Pendulum-v1"]["sac"][1], np.array([150.0, 950.0]), window=1)
     np.testing.assert_allclose(curve, [-1.0, -0.5])
+
+
+def test_budget_names_the_steps_ppo_and_trpo_ran_in_whole_rollouts(tmp_path):
+    for method, rollout in (("jirl", None), ("sac", None), ("ppo_il", 400), ("trpo_il", 250)):
+        for seed in (1, 2):
+            write_run(tmp_path, "Pendulum-v1", method, seed, 100.0, rollout=rollout)
+            command = f"python {method}.py --env-id Pendulum-v1 --total-timesteps 1000\n"
+            (reproduce.run_dir(tmp_path, "Pendulum-v1", method, seed) / "DONE").write_text(command)
+    results = reproduce.collect(tmp_path, ["Pendulum-v1"], list(reproduce.SCRIPTS), [1, 2])
+    assert reproduce.budgets(tmp_path, results) == (  # 1000 steps are two whole rollouts of 400, four of 250
+        "Budgets: Pendulum-v1: 1,000 env steps per run (PPO+IL 800: whole rollouts), 2/2/2/2 seeds (JIRL (SAC)/SAC/PPO+IL/TRPO+IL)."
+    )
 
 
 def test_quick_preset_end_to_end_and_resume(tmp_path, capsys):
