@@ -20,8 +20,9 @@ TOTALS = {"sac": {1: 2000.0, 2: 2400.0, 3: 1900.0}, "ppo_il": {1: 900.0, 2: 800.
 def write_run(workdir, env, method, seed, total, phases=None, rollout=None):
     folder = reproduce.run_dir(workdir, env, method, seed)
     writer = SummaryWriter(str(folder / "runs" / f"{env}__{method}__{seed}"))
-    for step in range(rollout, 1001, rollout) if rollout else ():  # PPO/TRPO+IL log SPS after each whole rollout
-        writer.add_scalar("charts/SPS", 300, step)
+    if rollout is not None:  # PPO/TRPO+IL log SPS at the end of each whole rollout
+        for step in range(rollout, 1001, rollout):
+            writer.add_scalar("charts/SPS", 300, step)
     for step in range(1, 11):  # episodes of 100 steps earning -1 per step at first, then -0.5
         writer.add_scalar("charts/episodic_return", -100.0 if step < 6 else -50.0, step * 100)
         writer.add_scalar("charts/episodic_length", 100, step * 100)
