@@ -247,7 +247,7 @@ def collect(workdir: Path, envs, methods, seeds) -> dict:
 
 def budgets(workdir: Path, results: dict) -> str:
     """One sentence: each env's env steps per run and seeds per method, read from the runs themselves.
-    PPO/TRPO+IL run whole rollouts (the budget rounded down): where that is fewer steps, theirs are named."""
+    PPO/TRPO+IL run whole rollouts (the budget rounded down, at least one): where theirs differ, they are named."""
     parts = []
     for env, methods in results.items():
         steps, rollouts = set(), {}
@@ -258,10 +258,10 @@ def budgets(workdir: Path, results: dict) -> str:
                     steps.add(int(arguments[arguments.index("--total-timesteps") + 1]))
                 if method in ("ppo_il", "trpo_il") and scalars.get("charts/SPS"):  # logged at the end of each rollout
                     rollouts.setdefault(method, set()).add(int(scalars["charts/SPS"][-1][0]))
-        fewer = [f"{LABELS[m]} {', '.join(f'{n:,}' for n in sorted(ran))}" for m, ran in rollouts.items() if ran != steps]
+        other = [f"{LABELS[m]} {', '.join(f'{n:,}' for n in sorted(ran))}" for m, ran in rollouts.items() if ran != steps]
         seeds = "/".join(str(len(runs)) for runs in methods.values())
         parts.append(f"{env}: {', '.join(f'{n:,}' for n in sorted(steps))} env steps per run"
-                     + (f" ({'; '.join(fewer)}: whole rollouts)" if fewer else "")
+                     + (f" ({'; '.join(other)}: whole rollouts)" if other else "")
                      + f", {seeds} seeds ({'/'.join(LABELS[m] for m in methods)})")  # fmt: skip
     return "Budgets: " + "; ".join(parts) + "."
 

@@ -78,6 +78,10 @@ def test_budget_names_the_steps_ppo_and_trpo_ran_in_whole_rollouts(tmp_path):
     assert reproduce.budgets(tmp_path, results) == (  # 1000 steps are two whole rollouts of 400, four of 250
         "Budgets: Pendulum-v1: 1,000 env steps per run (PPO+IL 800: whole rollouts), 2/2/2/2 seeds (JIRL (SAC)/SAC/PPO+IL/TRPO+IL)."
     )
+    for seed in (1, 2):  # a budget shorter than a rollout still runs one, and the sentence names its longer length
+        for scalars in (results["Pendulum-v1"]["ppo_il"][seed], results["Pendulum-v1"]["trpo_il"][seed]):
+            scalars["charts/SPS"] = [(1200, 300.0)]
+    assert "1,000 env steps per run (PPO+IL 1,200; TRPO+IL 1,200: whole rollouts)" in reproduce.budgets(tmp_path, results)
 
 
 def test_quick_preset_end_to_end_and_resume(tmp_path, capsys):
