@@ -491,7 +491,7 @@ def evaluate(path: str, env_id: str, episodes: int, seed: int) -> list[float]:
 if __name__ == "__main__":
     args = resolve_hyperparameters(tyro.cli(Args))
     batch_size = args.num_steps
-    minibatch_size = batch_size // args.num_minibatches
+    minibatch_size = batch_size // args.num_minibatches  # the smallest minibatch: np.array_split spreads the remainder
     num_iterations = max(1, args.total_timesteps // batch_size)
     run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
 
@@ -508,8 +508,9 @@ if __name__ == "__main__":
         baseline = load_baseline(args.baseline, args.env_id)
         if baseline is None:
             raise ValueError(f"PPO+IL imitates a baseline and {args.env_id} has none; pass --baseline module:function")
-        if minibatch_size < 1:
-            raise ValueError(f"--num-minibatches {args.num_minibatches} exceeds --num-steps {args.num_steps}")
+        if minibatch_size < (2 if args.norm_adv else 1):  # one step's advantage has no std to normalise by
+            need = "2 (--norm-adv divides by their advantages' std)" if args.norm_adv else "1"
+            raise ValueError(f"--num-steps {args.num_steps} in --num-minibatches {args.num_minibatches} leaves minibatches of {minibatch_size} step(s); they need {need}")
     except ValueError as err:
         raise SystemExit(f"{args.exp_name}: error: {err}")
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
@@ -678,9 +679,7 @@ if __name__ == "__main__":
         clipfracs = []
         for epoch in range(args.update_epochs):
             rng.shuffle(b_inds)
-            for start in range(0, batch_size, minibatch_size):
-                mb_inds = b_inds[start : start + minibatch_size]
-
+            for mb_inds in np.array_split(b_inds, args.num_minibatches):  # every step; sizes differ by at most 1
                 _, newlogprob, entropy, newvalue = agent.get_action_and_value(obs_buf[mb_inds], actions[mb_inds])
                 logratio = newlogprob - logprobs[mb_inds]
                 ratio = logratio.exp()

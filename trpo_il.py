@@ -126,7 +126,7 @@ class Args:
             ("eval_episodes", self.eval_episodes >= 1, ">= 1"),
             ("total_timesteps", self.total_timesteps >= 1, ">= 1"),
             ("learning_rate", 0.0 < self.learning_rate < math.inf, "> 0"),
-            ("num_steps", self.num_steps is None or self.num_steps >= 1, ">= 1"),
+            ("num_steps", self.num_steps is None or self.num_steps >= (2 if self.norm_adv else 1), ">= 2 with --norm-adv (advantages are divided by their std), else >= 1"),
             ("gamma", self.gamma is None or 0.0 <= self.gamma <= 1.0, "in [0, 1]"),
             ("gae_lambda", 0.0 <= self.gae_lambda <= 1.0, "in [0, 1]"),
             ("max_kl", 0.0 < self.max_kl < math.inf, "> 0"),

@@ -227,6 +227,23 @@ def test_script_copied_alone_runs_with_a_user_baseline(name, tmp_path):
     assert "baseline regret estimator: paired" in out.stdout
 
 
+def test_ppo_minibatches_take_every_step_and_normalised_advantages_need_two(tmp_path):
+    common = ["--total-timesteps", "257", "--il-steps", "400", "--il-max-epochs", "5", "--hidden-size", "16",
+              "--update-epochs", "2", "--baseline-eval-episodes", "1"]  # fmt: skip
+    # 257 steps in 4 minibatches: slicing by 64 left a minibatch of one step, whose advantage std is NaN
+    out = run_script(ROOT / "ppo_il.py", [*common, "--num-steps", "257", "--num-minibatches", "4"], tmp_path)
+    assert out.returncode == 0, out.stderr[-2000:]
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    logged = scalars(run_dir)
+    for key in ("losses/policy_loss", "losses/value_loss", "losses/approx_kl"):
+        assert len(logged[key]) == 1 and np.isfinite(logged[key][0]), key
+    out = run_script(ROOT / "ppo_il.py", [*common, "--num-steps", "5", "--num-minibatches", "4"], tmp_path)
+    assert out.returncode != 0 and "--num-steps 5 in --num-minibatches 4 leaves minibatches of 1 step(s); they need 2" in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1
+    out = run_script(ROOT / "ppo_il.py", [*common, "--num-steps", "5", "--num-minibatches", "4", "--no-norm-adv"], tmp_path)
+    assert out.returncode == 0, out.stderr[-2000:]
+
+
 ONE_STEP_ENV = """
 import gymnasium as gym
 import numpy as np
