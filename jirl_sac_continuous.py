@@ -642,8 +642,9 @@ def load_checkpoint(path: str) -> dict:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:
         raise
-    except Exception as err:  # torch raises many types for a damaged file
-        raise ValueError(f"{path} is not a readable checkpoint ({type(err).__name__}: {err})") from None
+    except Exception as err:  # torch raises many types for a damaged file; keep the first sentence (the rest advises weights_only=False)
+        cause = (str(err).strip().splitlines() or ["the file ends early"])[0].split(". ")[0]
+        raise ValueError(f"{path} is not a readable checkpoint ({type(err).__name__}: {cause})") from None
     if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path} is not a {CHECKPOINT_FORMAT} checkpoint")
     missing = [key for key in CHECKPOINT_KEYS if key not in checkpoint]

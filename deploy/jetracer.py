@@ -492,8 +492,9 @@ def load_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
         state = torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:
         raise
-    except Exception as err:
-        raise ValueError(f"{path} is not a readable training state ({type(err).__name__}: {err})") from None
+    except Exception as err:  # torch raises many types for a damaged file; keep the first sentence (the rest advises weights_only=False)
+        cause = (str(err).strip().splitlines() or ["the file ends early"])[0].split(". ")[0]
+        raise ValueError(f"{path} is not a readable training state ({type(err).__name__}: {cause})") from None
     if not isinstance(state, dict) or state.get("format") != TRAIN_STATE_FORMAT:
         raise ValueError(f"{path} is not a {TRAIN_STATE_FORMAT} file")
 

@@ -45,8 +45,9 @@ def _read(path: Path) -> dict[str, Any]:
         data = torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:
         raise
-    except Exception as err:  # torch raises many types for a damaged file
-        raise ValueError(f"{path} is not readable policy weights ({type(err).__name__}: {err})") from None
+    except Exception as err:  # torch raises many types for a damaged file; keep the first sentence (the rest advises weights_only=False)
+        cause = (str(err).strip().splitlines() or ["the file ends early"])[0].split(". ")[0]
+        raise ValueError(f"{path} is not readable policy weights ({type(err).__name__}: {cause})") from None
     if not isinstance(data, dict):
         raise ValueError(f"{path} is not a policy weights file")
     return data

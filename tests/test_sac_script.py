@@ -114,6 +114,32 @@ def test_checkpoint_round_trip_and_errors(tmp_path, sac):
     assert path.exists() and corrupt.exists(), "a failed load deletes nothing"
 
 
+@pytest.mark.parametrize("loader", ["sac_continuous", "jirl_sac_continuous", "ppo_il", "trpo_il", "walker2d", "deploy"])
+def test_a_damaged_file_is_a_one_line_error_that_never_advises_weights_only_false(tmp_path, loader):
+    if loader == "walker2d":
+        from envs.walker2d import load_policy as load
+    elif loader == "deploy":
+        from deploy.jetracer import load_training_state
+
+        def load(path):
+            return load_training_state(path, None, None)  # fails on the file, before the agent is touched
+    else:
+        load = load_script(loader).load_checkpoint
+    good = tmp_path / "good.pt"
+    torch.save({"weights": torch.zeros(3)}, good)
+    damaged = {"text": (b"garbage\n", "UnpicklingError: Weights only load failed)"), "empty": (b"", "EOFError: the file ends early)"),
+               "cut": (good.read_bytes()[:100], "RuntimeError: PytorchStreamReader failed reading zip archive: failed finding central directory)")}  # fmt: skip
+    for name, (data, cause) in damaged.items():
+        path = tmp_path / f"{name}.pt"
+        path.write_bytes(data)
+        with pytest.raises(ValueError) as raised:
+            load(str(path))
+        message = str(raised.value)  # torch's own message runs to several lines and suggests weights_only=False
+        assert message.startswith(f"{path} is not ") and message.endswith(cause), message
+        assert "\n" not in message and "weights_only" not in message, message
+        assert path.read_bytes() == data
+
+
 @pytest.mark.parametrize(
     "env_id, message",
     [("NoSuchEnv-v0", "unknown env id 'NoSuchEnv-v0'"), ("CartPole-v1", "Discrete(2) action space")],
