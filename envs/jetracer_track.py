@@ -16,7 +16,6 @@ from __future__ import annotations
 import contextlib
 import math
 import os
-import shutil
 import tempfile
 from dataclasses import dataclass
 from typing import Any, Optional
@@ -97,7 +96,6 @@ class JetRacerTrackEnv(gym.Env):
         self._p = pybullet
         with _quiet_stdout():
             self._client = bullet_client.BulletClient(connection_mode=pybullet.DIRECT)
-        self._assets = tempfile.mkdtemp(prefix="jetracer_track_")
         self._ground = self._load_ground()
         marker = self._client.createVisualShape(pybullet.GEOM_BOX, halfExtents=[0.1, 0.06, 0.04], rgbaColor=[0.1, 0.6, 0.2, 1])
         self._marker = self._client.createMultiBody(baseVisualShapeIndex=marker, basePosition=[0, 0, -1])
@@ -108,14 +106,15 @@ class JetRacerTrackEnv(gym.Env):
         import cv2
 
         half_x, half_y = self.track.extent
-        texture_path = os.path.join(self._assets, "track.png")
-        cv2.imwrite(texture_path, cv2.cvtColor(self.track.texture(), cv2.COLOR_RGB2BGR))
-        mesh_path = os.path.join(self._assets, "quad.obj")
-        with open(mesh_path, "w") as f:  # one quad with UVs 0..1, so the texture is not tiled
-            f.write("v -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nvn 0 0 1\nf 1/1/1 2/2/1 3/3/1\nf 1/1/1 3/3/1 4/4/1\n")
-        shape = self._client.createVisualShape(self._p.GEOM_MESH, fileName=mesh_path, meshScale=[half_x, half_y, 1])
+        with tempfile.TemporaryDirectory(prefix="jetracer_track_") as assets:  # PyBullet keeps what it loads in memory
+            texture_path = os.path.join(assets, "track.png")
+            cv2.imwrite(texture_path, cv2.cvtColor(self.track.texture(), cv2.COLOR_RGB2BGR))
+            mesh_path = os.path.join(assets, "quad.obj")
+            with open(mesh_path, "w") as f:  # one quad with UVs 0..1, so the texture is not tiled
+                f.write("v -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nvn 0 0 1\nf 1/1/1 2/2/1 3/3/1\nf 1/1/1 3/3/1 4/4/1\n")
+            shape = self._client.createVisualShape(self._p.GEOM_MESH, fileName=mesh_path, meshScale=[half_x, half_y, 1])
+            self._texture = self._client.loadTexture(texture_path)
         body = self._client.createMultiBody(baseVisualShapeIndex=shape)
-        self._texture = self._client.loadTexture(texture_path)
         self._client.changeVisualShape(body, -1, textureUniqueId=self._texture)
         return body
 
@@ -239,4 +238,3 @@ class JetRacerTrackEnv(gym.Env):
         if getattr(self, "_client", None) is not None:
             self._client.disconnect()
             self._client = None
-        shutil.rmtree(getattr(self, "_assets", ""), ignore_errors=True)

@@ -1,6 +1,7 @@
 """JetRacerTrack-v0: track geometry, laps, termination, determinism, the camera pipeline and its baseline."""
 
 import math
+import tempfile
 
 import cv2
 import numpy as np
@@ -163,6 +164,25 @@ def test_frames_observations_and_rendering_have_the_promised_shapes():
     assert env.render().shape == (256, 256, 3)
     assert 0.2 < obs[:-2].mean() < 0.9, "the lane fills part of the view"
     env.close()
+
+
+def test_the_track_leaves_no_files_behind_while_open_or_when_it_fails_to_build(tmp_path, monkeypatch):
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
+    env = JetRacerTrackEnv()
+    obs, _ = env.reset(seed=0)
+    assert list(scratch.iterdir()) == [], "the texture and the mesh are loaded, their files gone"
+    assert 0.2 < obs[:-2].mean() < 0.9, "and the lane is still drawn"
+    env.close()
+
+    def fail(self, metres_per_pixel=0.004):
+        raise MemoryError("no room for the texture")
+
+    monkeypatch.setattr(TrackSpec, "texture", fail)
+    with pytest.raises(MemoryError):
+        JetRacerTrackEnv()
+    assert list(scratch.iterdir()) == []
 
 
 def test_preprocessing_is_the_same_for_a_sim_frame_and_the_same_frame_from_a_camera_file(tmp_path):
