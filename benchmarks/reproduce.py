@@ -316,7 +316,7 @@ def reward_per_step_curve(scalars: dict, grid: np.ndarray, window: int = 5) -> n
     if not returns:
         return np.full(len(grid), np.nan)
     steps = np.array([s for s, _ in returns], dtype=float)
-    per_step = np.array([r / max(l, 1.0) for (_, r), (_, l) in zip(returns, lengths)])
+    per_step = np.array([r / max(length, 1.0) for (_, r), (_, length) in zip(returns, lengths)])
     kernel = np.ones(min(window, len(per_step))) / min(window, len(per_step))
     smooth = np.convolve(per_step, kernel, mode="same")
     return np.interp(grid, steps, smooth, left=np.nan, right=np.nan)

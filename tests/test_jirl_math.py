@@ -31,7 +31,9 @@ def test_squashed_log_prob_matches_scipy(dims):
 
 @pytest.mark.parametrize("mean, log_std", [(0.0, 0.0), (1.2, -1.0), (-0.5, -2.5)])
 def test_squashed_density_integrates_to_one(mean, log_std):
-    density = lambda y: math.exp(jirl.squashed_log_prob(np.array([mean]), np.array([log_std]), np.array([y])))
+    def density(y):
+        return math.exp(jirl.squashed_log_prob(np.array([mean]), np.array([log_std]), np.array([y])))
+
     edge = 1 - jirl.BASELINE_ACTION_EPS
     mass, _ = integrate.quad(density, -edge, edge, limit=200, points=[math.tanh(mean)])
     assert mass == pytest.approx(1.0, abs=2e-3)
