@@ -165,12 +165,12 @@ def resolve_hyperparameters(args: Args) -> Args:
 
 def make_env(env_id: str, seed: int, capture_video: bool = False, run_name: str = "") -> gym.Env:
     """One env (no vector wrapper: episodes are reset explicitly, so there is no autoreset to undo)."""
-    render_mode = "rgb_array" if capture_video else None
+    render = {"render_mode": "rgb_array"} if capture_video else {}  # an env whose constructor lacks render_mode still makes
     if project_make_env is not None:
-        env = project_make_env(env_id, seed, render_mode)
+        env = project_make_env(env_id, seed, **render)
     else:
         try:
-            env = gym.make(env_id, render_mode=render_mode)
+            env = gym.make(env_id, **render)
         except gym.error.DependencyNotInstalled as err:  # a known id whose simulator is missing
             raise ValueError(f"env id {env_id!r} needs a package that is not installed: {err}") from None
         except gym.error.Error as err:
@@ -271,8 +271,11 @@ def to_env_units(action: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.nd
 
 
 def to_policy_units(action: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
-    """The baseline speaks env units; everything stored or compared is in [-1, 1]."""
-    return np.clip(2.0 * (np.asarray(action, dtype=np.float64) - low) / (high - low) - 1.0, -1.0, 1.0)
+    """The baseline speaks env units; everything stored or compared is in [-1, 1]. A dimension whose
+    bounds are equal holds one value, 0 here (not 0/0 = NaN)."""
+    span = high - low
+    fraction = np.divide(np.asarray(action, dtype=np.float64) - low, span, out=np.full(np.shape(action), 0.5), where=span > 0)
+    return np.clip(2.0 * fraction - 1.0, -1.0, 1.0)
 
 
 class RunningMeanStd:

@@ -115,12 +115,12 @@ class Args:
 
 def make_env(env_id: str, seed: int, capture_video: bool = False, run_name: str = "") -> gym.Env:
     """One env (no vector wrapper: episodes are reset explicitly, so there is no autoreset to undo)."""
-    render_mode = "rgb_array" if capture_video else None
+    render = {"render_mode": "rgb_array"} if capture_video else {}  # an env whose constructor lacks render_mode still makes
     if project_make_env is not None:
-        env = project_make_env(env_id, seed, render_mode)
+        env = project_make_env(env_id, seed, **render)
     else:
         try:
-            env = gym.make(env_id, render_mode=render_mode)
+            env = gym.make(env_id, **render)
         except gym.error.DependencyNotInstalled as err:  # a known id whose simulator is missing
             raise ValueError(f"env id {env_id!r} needs a package that is not installed: {err}") from None
         except gym.error.Error as err:

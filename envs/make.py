@@ -33,8 +33,10 @@ def make_env(env_id: str, seed: int | None = None, render_mode: str | None = Non
     unknown id.
     """
     _register_lazily(env_id)
+    if render_mode is not None:  # passed only when asked for: an env whose constructor lacks it still makes
+        kwargs["render_mode"] = render_mode
     try:
-        env = gym.make(env_id, render_mode=render_mode, **kwargs)
+        env = gym.make(env_id, **kwargs)
     except gym.error.DependencyNotInstalled as err:  # a known id whose simulator is missing
         raise ValueError(f"env id {env_id!r} needs a package that is not installed: {err}") from None
     except gym.error.Error as err:
