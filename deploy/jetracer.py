@@ -425,7 +425,9 @@ def run(args: Run) -> List[float]:
     try:
         actor = jirl.actor_from_checkpoint(jirl.load_checkpoint(args.checkpoint), CarSpaces())
     except (ValueError, FileNotFoundError) as err:
-        raise SystemExit(f"run: error: {err}")
+        policy_file = f"{args.checkpoint}.actor.cleanrl_model"  # what `train` writes beside its training state
+        hint = f"; `train` keeps the policy of this training in {policy_file}" if os.path.exists(policy_file) else ""
+        raise SystemExit(f"run: error: {err}{hint}")
 
     def policy(obs: np.ndarray) -> np.ndarray:
         with torch.inference_mode():
