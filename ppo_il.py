@@ -165,7 +165,7 @@ def resolve_hyperparameters(args: Args) -> Args:
 
 def make_env(env_id: str, seed: int, capture_video: bool = False, run_name: str = "") -> gym.Env:
     """One env (no vector wrapper: episodes are reset explicitly, so there is no autoreset to undo)."""
-    render = {"render_mode": "rgb_array"} if capture_video else {}  # an env whose constructor lacks render_mode still makes
+    render = {"render_mode": "rgb_array"} if capture_video else {}  # only when recording: an env whose constructor has no render_mode still works
     if project_make_env is not None:
         env = project_make_env(env_id, seed, **render)
     else:

@@ -425,8 +425,8 @@ def run(args: Run) -> List[float]:
     try:
         actor = jirl.actor_from_checkpoint(jirl.load_checkpoint(args.checkpoint), CarSpaces())
     except (ValueError, FileNotFoundError) as err:
-        policy_file = f"{args.checkpoint}.actor.cleanrl_model"  # what `train` writes beside its training state
-        hint = f"; `train` keeps the policy of this training in {policy_file}" if os.path.exists(policy_file) else ""
+        beside = policy_path(args.checkpoint)  # given a training state, name the policy train wrote beside it
+        hint = f"; `train` keeps the policy of this training in {beside}" if os.path.exists(beside) else ""
         raise SystemExit(f"run: error: {err}{hint}")
 
     def policy(obs: np.ndarray) -> np.ndarray:
@@ -483,8 +483,13 @@ def save_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
     torch.save(state, tmp)
     os.replace(tmp, path)
     spaces = CarSpaces()
-    jirl.save_checkpoint(f"{path}.actor.cleanrl_model.tmp", "JetRacer", spaces, sac.actor, sac.qf, args.jirl)
-    os.replace(f"{path}.actor.cleanrl_model.tmp", f"{path}.actor.cleanrl_model")
+    jirl.save_checkpoint(f"{policy_path(path)}.tmp", "JetRacer", spaces, sac.actor, sac.qf, args.jirl)
+    os.replace(f"{policy_path(path)}.tmp", policy_path(path))
+
+
+def policy_path(state_path: str) -> str:
+    """Where `train` writes the policy of the training state at state_path, for `run --checkpoint`."""
+    return f"{state_path}.actor.cleanrl_model"
 
 
 def load_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuffer) -> dict:

@@ -33,7 +33,7 @@ def make_env(env_id: str, seed: int | None = None, render_mode: str | None = Non
     unknown id.
     """
     _register_lazily(env_id)
-    if render_mode is not None:  # passed only when asked for: an env whose constructor lacks it still makes
+    if render_mode is not None:  # only when asked for: an env whose constructor has no render_mode still works
         kwargs["render_mode"] = render_mode
     try:
         env = gym.make(env_id, **kwargs)
