@@ -273,7 +273,7 @@ class Gamepad:
                     if value:
                         self.presses.add(number)
                 elif kind == 2:
-                    self.axes[number] = value / 32767.0
+                    self.axes[number] = max(-1.0, value / 32767.0)  # the kernel reports -32768..32767
 
     def was_pressed(self, button: int) -> bool:
         """Whether `button` is down, or went down since the last call (released again before a poll saw it)."""

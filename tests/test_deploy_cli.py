@@ -154,9 +154,10 @@ def test_gamepad_events_estop_and_takeover(tmp_path, monkeypatch):
 
     pad = Gamepad(path)
     event = struct.Struct("<IhBB")
-    os.write(writer_fd, event.pack(0, 32767, 2, 4) + event.pack(0, -16384, 2, 0) + event.pack(0, 0, 0x81, 0))
+    os.write(writer_fd, event.pack(0, 32767, 2, 4) + event.pack(0, -16384, 2, 0) + event.pack(0, -32768, 2, 1) + event.pack(0, 0, 0x81, 0))
     pad.poll()
     assert pad.axes[4] == pytest.approx(1.0) and pad.axes[0] == pytest.approx(-0.5, abs=1e-4) and pad.buttons[0] is False
+    assert pad.axes[1] == -1.0  # the one value past -1 the kernel reports, -32768, is -1 too
     os.write(writer_fd, event.pack(5, 1, 1, 0))
     pad.poll()
     assert pad.buttons[0] is True
