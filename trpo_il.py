@@ -6,6 +6,7 @@ import importlib
 import math
 import os
 import random
+import sys
 import time
 from dataclasses import dataclass
 from typing import Callable, Literal, Optional
@@ -171,6 +172,8 @@ def make_env(env_id: str, seed: int, capture_video: bool = False, run_name: str 
             env = gym.make(env_id, **render)
         except gym.error.DependencyNotInstalled as err:  # a known id whose simulator is missing
             raise ValueError(f"env id {env_id!r} needs a package that is not installed: {err}") from None
+        except ImportError as err:  # `module:Env-v0` whose module, or one its env needs, does not import
+            raise ValueError(f"env id {env_id!r} needs a module that does not import: {err}") from None
         except gym.error.Error as err:
             raise ValueError(f"unknown env id {env_id!r}: {err}") from None
         env.action_space.seed(seed)
@@ -566,6 +569,7 @@ def evaluate(path: str, env_id: str, episodes: int, seed: int) -> list[float]:
 
 if __name__ == "__main__":
     args = resolve_hyperparameters(tyro.cli(Args))
+    sys.path.append(os.getcwd())  # `module:...` in --env-id and --baseline also finds modules in the current directory, as `python -m` does
     batch_size = args.num_steps
     num_iterations = max(1, args.total_timesteps // batch_size)
     run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"

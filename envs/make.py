@@ -39,6 +39,8 @@ def make_env(env_id: str, seed: int | None = None, render_mode: str | None = Non
         env = gym.make(env_id, **kwargs)
     except gym.error.DependencyNotInstalled as err:  # a known id whose simulator is missing
         raise ValueError(f"env id {env_id!r} needs a package that is not installed: {err}") from None
+    except ImportError as err:  # `module:Env-v0` whose module, or one its env needs, does not import
+        raise ValueError(f"env id {env_id!r} needs a module that does not import: {err}") from None
     except gym.error.Error as err:
         raise ValueError(f"unknown env id {env_id!r}: {err}") from None
     if seed is not None:

@@ -127,7 +127,8 @@ def baseline(obs):  # damping only: no import of this project, so a script copie
 @pytest.mark.parametrize("script, alone", [*((script, False) for script in SCRIPTS), ("jirl_sac_continuous", True)])
 def test_every_script_runs_an_env_without_render_mode_and_with_a_fixed_action_dimension(script, alone, tmp_path):
     (tmp_path / "fixed_input.py").write_text(FIXED_DIMENSION_ENV)
-    env = dict(os.environ, PYTHONPATH=str(tmp_path) if alone else f"{tmp_path}{os.pathsep}{ROOT}")
+    # no PYTHONPATH: the user's module is found in the current directory, the script run by its path from elsewhere
+    env = {key: value for key, value in os.environ.items() if key != "PYTHONPATH"}
     path = ROOT / f"{script}.py"
     if alone:  # without envs/, the script makes the env with gymnasium itself
         path = Path(shutil.copy(path, tmp_path))
@@ -140,3 +141,17 @@ def test_every_script_runs_an_env_without_render_mode_and_with_a_fixed_action_di
     out = run_script(path, args, tmp_path, env)
     assert out.returncode == 0, out.stderr
     assert "baseline regret estimator: paired" in out.stdout
+
+
+# fallback: the scripts' own gym.make, as when a script is copied alone
+@pytest.mark.parametrize("script, fallback", [*((script, fallback) for script in SCRIPTS for fallback in (False, True)), ("envs", False)])
+def test_an_env_id_whose_module_does_not_import_is_a_one_line_error(script, fallback, monkeypatch):
+    if script == "envs":
+        from envs import make_env
+    else:
+        module = load_script(script)
+        if fallback:
+            monkeypatch.setattr(module, "project_make_env", None)
+        make_env = module.make_env
+    with pytest.raises(ValueError, match=r"^env id 'no_such_module:Env-v0' needs a module that does not import: No module named 'no_such_module'"):
+        make_env("no_such_module:Env-v0", 0)
