@@ -1,4 +1,4 @@
-"""A user's baseline (--baseline module:function) that returns the wrong thing is a clear error, in every script."""
+"""A user's own baseline and env (`--baseline module:function`, `--env-id module:Env-v0`) in every script: what runs, and the one-line errors for what cannot."""
 
 import os
 import shutil
