@@ -31,6 +31,7 @@ except ImportError:
 CHECKPOINT_FORMAT = "jirl-sac-checkpoint-v2"  # v2: the twin critics as one ensemble "qf"
 CHECKPOINT_KEYS = ("env_id", "obs_dim", "action_low", "action_high", "hidden_size", "actor", "qf", "args")  # what save_checkpoint writes besides the format
 EVAL_SEED_OFFSET = 1_000_000  # evaluation episodes (and the baseline's) never reuse a training reset seed
+BASELINE_EPISODE_LIMIT = 100_000  # steps: a baseline episode longer than this is an env without a time limit
 FUSED_ADAM = tuple(int(v) for v in torch.__version__.split(".")[:2]) >= (2, 4)  # fused Adam runs on CPU from torch 2.4 (the car may have older)
 GUIDANCE_C_END = 1e-6  # where the geometric guidance schedule ends before C drops to 0
 BASELINE_ACTION_EPS = 1e-3  # a^b is clipped into [-1 + eps, 1 - eps], where the tanh-squashed density is finite
@@ -231,6 +232,9 @@ def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.nd
         obs, reward, terminated, truncated, _ = env.step(check_baseline_action(action, env.action_space))
         rewards.append(float(reward))
         done = terminated or truncated
+        if not done and len(rewards) == BASELINE_EPISODE_LIMIT:  # a baseline that never fails would run forever
+            raise ValueError(f"the baseline's episode from reset seed {seed} did not end within {BASELINE_EPISODE_LIMIT:,} steps;"
+                             " give the env a time limit (max_episode_steps) or use --regret-estimator off")
     return first_obs, np.asarray(rewards)
 
 
@@ -755,8 +759,8 @@ if __name__ == "__main__":
         try:
             traces = [baseline_rollout(shadow_env, baseline, args.seed + EVAL_SEED_OFFSET + i)[1] for i in range(args.baseline_eval_episodes)]
         except ValueError as err:
-            # an intervening baseline cannot be measured, and the earned schedule measures it too
-            earned_note = " and --guidance-schedule geometric" if earned_guidance and "returned None" in str(err) else ""
+            # an intervening baseline, or one whose episodes never end, cannot be measured, and the earned schedule measures it too
+            earned_note = " and --guidance-schedule geometric" if earned_guidance and str(err).endswith("--regret-estimator off") else ""
             raise SystemExit(f"{args.exp_name}: error: {err}{earned_note}")
         baseline_return = float(np.mean([t.sum() for t in traces]))
         baseline_reward_per_step = float(sum(t.sum() for t in traces) / sum(len(t) for t in traces))

@@ -28,6 +28,7 @@ except ImportError:
 CHECKPOINT_FORMAT = "jirl-gaussian-checkpoint-v1"
 CHECKPOINT_KEYS = ("env_id", "obs_dim", "action_low", "action_high", "hidden_size", "agent", "obs_mean", "obs_var", "args")  # what save_checkpoint writes besides the format
 EVAL_SEED_OFFSET = 1_000_000  # evaluation episodes (and the baseline's) never reuse a training reset seed
+BASELINE_EPISODE_LIMIT = 100_000  # steps: a baseline episode longer than this is an env without a time limit
 IL_SEED_OFFSET = 2_000_000  # the imitation phase's baseline episodes neither
 
 # RL Zoo's tuned PPO hyperparameters (rl-baselines3-zoo, hyperparams/ppo.yml), one env here:
@@ -241,6 +242,9 @@ def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.nd
         obs, reward, terminated, truncated, _ = env.step(check_baseline_action(action, env.action_space))
         rewards.append(float(reward))
         done = terminated or truncated
+        if not done and len(rewards) == BASELINE_EPISODE_LIMIT:  # a baseline that never fails would run forever
+            raise ValueError(f"the baseline's episode from reset seed {seed} did not end within {BASELINE_EPISODE_LIMIT:,} steps;"
+                             " give the env a time limit (max_episode_steps) or use --regret-estimator off")
     return first_obs, np.asarray(rewards)
 
 
@@ -360,6 +364,9 @@ def collect_baseline_data(env: gym.Env, baseline: Callable, steps: int, seed: in
             discounted_return = discounted_return * gamma + rewards[-1]  # as --norm-reward accumulates it
             running_list.append(discounted_return)
             done = terminated or truncated
+            if not done and len(rewards) == BASELINE_EPISODE_LIMIT:  # a baseline that never fails would run forever
+                raise ValueError(f"the baseline's episode from reset seed {seed + IL_SEED_OFFSET + episode} did not end within"
+                                 f" {BASELINE_EPISODE_LIMIT:,} steps; imitation needs whole episodes: give the env a time limit (max_episode_steps)")
         returns_to_go, running = np.zeros(len(rewards)), 0.0
         for t in reversed(range(len(rewards))):  # Monte Carlo; a truncated tail is cut short, not bootstrapped
             running = rewards[t] + gamma * running

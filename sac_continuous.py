@@ -30,6 +30,7 @@ except ImportError:
 CHECKPOINT_FORMAT = "jirl-sac-checkpoint-v2"  # v2: the twin critics as one ensemble "qf"
 CHECKPOINT_KEYS = ("env_id", "obs_dim", "action_low", "action_high", "hidden_size", "actor", "qf", "args")  # what save_checkpoint writes besides the format
 EVAL_SEED_OFFSET = 1_000_000  # evaluation episodes (and the baseline's) never reuse a training reset seed
+BASELINE_EPISODE_LIMIT = 100_000  # steps: a baseline episode longer than this is an env without a time limit
 FUSED_ADAM = tuple(int(v) for v in torch.__version__.split(".")[:2]) >= (2, 4)  # fused Adam runs on CPU from torch 2.4 (the car may have older)
 
 
@@ -191,6 +192,9 @@ def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.nd
         obs, reward, terminated, truncated, _ = env.step(check_baseline_action(action, env.action_space))
         rewards.append(float(reward))
         done = terminated or truncated
+        if not done and len(rewards) == BASELINE_EPISODE_LIMIT:  # a baseline that never fails would run forever
+            raise ValueError(f"the baseline's episode from reset seed {seed} did not end within {BASELINE_EPISODE_LIMIT:,} steps;"
+                             " give the env a time limit (max_episode_steps) or use --regret-estimator off")
     return first_obs, np.asarray(rewards)
 
 

@@ -2,6 +2,8 @@
 
 import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -155,3 +157,33 @@ def test_an_env_id_whose_module_does_not_import_is_a_one_line_error(script, fall
         make_env = module.make_env
     with pytest.raises(ValueError, match=r"^env id 'no_such_module:Env-v0' needs a module that does not import: No module named 'no_such_module'"):
         make_env("no_such_module:Env-v0", 0)
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_baseline_episode_that_never_ends_is_an_error_not_a_hang(script, monkeypatch):
+    from gymnasium.envs.classic_control.pendulum import PendulumEnv
+
+    from envs.pendulum import pendulum_swing_up
+
+    module = load_script(script)
+    monkeypatch.setattr(module, "BASELINE_EPISODE_LIMIT", 50)
+    _, rewards = module.baseline_rollout(gym.wrappers.TimeLimit(PendulumEnv(), 50), pendulum_swing_up, 0)
+    assert len(rewards) == 50  # an episode as long as the limit is fine
+    with pytest.raises(ValueError, match=r"^the baseline's episode from reset seed 3 did not end within 50 steps; give the env a time limit"):
+        module.baseline_rollout(PendulumEnv(), pendulum_swing_up, 3)  # no TimeLimit, and Pendulum never terminates
+    if script in ("ppo_il", "trpo_il"):  # the imitation phase's rollouts
+        with pytest.raises(ValueError, match="did not end within 50 steps; imitation needs whole episodes"):
+            module.collect_baseline_data(PendulumEnv(), pendulum_swing_up, 100, 0, 0.99)
+
+
+def test_jirl_names_every_flag_an_endless_baseline_episode_needs(tmp_path):
+    (tmp_path / "endless.py").write_text(
+        "import gymnasium as gym\n"
+        "gym.register('EndlessPendulum-v0', entry_point='gymnasium.envs.classic_control.pendulum:PendulumEnv')  # no time limit\n"
+    )  # fmt: skip
+    args = ["--env-id", "endless:EndlessPendulum-v0", "--baseline", "envs.pendulum:pendulum_swing_up", "--baseline-eval-episodes", "1"]
+    out = subprocess.run([sys.executable, str(ROOT / "jirl_sac_continuous.py"), *args], cwd=tmp_path, capture_output=True, text=True,
+                         timeout=120)  # a hang, as before the limit, fails here  # fmt: skip
+    assert out.returncode != 0 and len(out.stderr.strip().splitlines()) == 1, out.stderr
+    assert out.stderr.strip().endswith("did not end within 100,000 steps; give the env a time limit (max_episode_steps)"
+                                       " or use --regret-estimator off and --guidance-schedule geometric"), out.stderr
