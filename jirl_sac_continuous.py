@@ -31,7 +31,7 @@ except ImportError:
 CHECKPOINT_FORMAT = "jirl-sac-checkpoint-v2"  # v2: the twin critics as one ensemble "qf"
 CHECKPOINT_KEYS = ("env_id", "obs_dim", "action_low", "action_high", "hidden_size", "actor", "qf", "args")  # what save_checkpoint writes besides the format
 EVAL_SEED_OFFSET = 1_000_000  # evaluation episodes (and the baseline's) never reuse a training reset seed
-BASELINE_EPISODE_LIMIT = 100_000  # steps: a baseline episode longer than this is an env without a time limit
+EPISODE_LIMIT = 100_000  # steps: an episode still running after this many is in an env without a time limit
 FUSED_ADAM = tuple(int(v) for v in torch.__version__.split(".")[:2]) >= (2, 4)  # fused Adam runs on CPU from torch 2.4 (the car may have older)
 GUIDANCE_C_END = 1e-6  # where the geometric guidance schedule ends before C drops to 0
 BASELINE_ACTION_EPS = 1e-3  # a^b is clipped into [-1 + eps, 1 - eps], where the tanh-squashed density is finite
@@ -232,8 +232,8 @@ def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.nd
         obs, reward, terminated, truncated, _ = env.step(check_baseline_action(action, env.action_space))
         rewards.append(float(reward))
         done = terminated or truncated
-        if not done and len(rewards) == BASELINE_EPISODE_LIMIT:  # a baseline that never fails would run forever
-            raise ValueError(f"the baseline's episode from reset seed {seed} did not end within {BASELINE_EPISODE_LIMIT:,} steps;"
+        if not done and len(rewards) == EPISODE_LIMIT:  # a baseline that never fails would run forever
+            raise ValueError(f"the baseline's episode from reset seed {seed} did not end within {EPISODE_LIMIT:,} steps;"
                              " give the env a time limit (max_episode_steps) or use --regret-estimator off")
     return first_obs, np.asarray(rewards)
 
@@ -691,13 +691,15 @@ def evaluate(path: str, env_id: str, episodes: int, seed: int) -> list[float]:
     returns = []
     for i in range(episodes):
         obs, _ = env.reset(seed=seed + EVAL_SEED_OFFSET + i)
-        episode_return, done = 0.0, False
+        episode_return, done, steps = 0.0, False, 0
         while not done:
             with torch.inference_mode():
                 _, _, action = actor.get_action(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0))
             obs, reward, terminated, truncated, _ = env.step(to_env_units(action[0].numpy(), low, high))
             episode_return += float(reward)
-            done = terminated or truncated
+            done, steps = terminated or truncated, steps + 1
+            if not done and steps == EPISODE_LIMIT:  # a policy that never fails would run for ever
+                raise ValueError(f"evaluation episode {i} did not end within {EPISODE_LIMIT:,} steps; give the env a time limit (max_episode_steps)")
         returns.append(episode_return)
     env.close()
     return returns
@@ -902,7 +904,10 @@ if __name__ == "__main__":
         model_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
         save_checkpoint(model_path, args.env_id, env, sac.actor, sac.qf, args)
         print(f"model saved to {model_path}")
-        episodic_returns = evaluate(model_path, args.env_id, args.eval_episodes, args.seed)
+        try:
+            episodic_returns = evaluate(model_path, args.env_id, args.eval_episodes, args.seed)
+        except ValueError as err:  # the model is saved; only its evaluation failed
+            raise SystemExit(f"{args.exp_name}: error: {err}")
         for idx, episodic_return in enumerate(episodic_returns):
             writer.add_scalar("eval/episodic_return", episodic_return, idx)
         print(f"eval: mean return {np.mean(episodic_returns):.1f} over {len(episodic_returns)} episodes")

@@ -28,7 +28,7 @@ except ImportError:
 CHECKPOINT_FORMAT = "jirl-gaussian-checkpoint-v1"
 CHECKPOINT_KEYS = ("env_id", "obs_dim", "action_low", "action_high", "hidden_size", "agent", "obs_mean", "obs_var", "args")  # what save_checkpoint writes besides the format
 EVAL_SEED_OFFSET = 1_000_000  # evaluation episodes (and the baseline's) never reuse a training reset seed
-BASELINE_EPISODE_LIMIT = 100_000  # steps: a baseline episode longer than this is an env without a time limit
+EPISODE_LIMIT = 100_000  # steps: an episode still running after this many is in an env without a time limit
 IL_SEED_OFFSET = 2_000_000  # the imitation phase's baseline episodes neither
 
 # RL Zoo's tuned PPO hyperparameters (rl-baselines3-zoo, hyperparams/ppo.yml), one env here:
@@ -242,8 +242,8 @@ def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.nd
         obs, reward, terminated, truncated, _ = env.step(check_baseline_action(action, env.action_space))
         rewards.append(float(reward))
         done = terminated or truncated
-        if not done and len(rewards) == BASELINE_EPISODE_LIMIT:  # a baseline that never fails would run forever
-            raise ValueError(f"the baseline's episode from reset seed {seed} did not end within {BASELINE_EPISODE_LIMIT:,} steps;"
+        if not done and len(rewards) == EPISODE_LIMIT:  # a baseline that never fails would run forever
+            raise ValueError(f"the baseline's episode from reset seed {seed} did not end within {EPISODE_LIMIT:,} steps;"
                              " give the env a time limit (max_episode_steps) or use --regret-estimator off")
     return first_obs, np.asarray(rewards)
 
@@ -364,9 +364,9 @@ def collect_baseline_data(env: gym.Env, baseline: Callable, steps: int, seed: in
             discounted_return = discounted_return * gamma + rewards[-1]  # as --norm-reward accumulates it
             running_list.append(discounted_return)
             done = terminated or truncated
-            if not done and len(rewards) == BASELINE_EPISODE_LIMIT:  # a baseline that never fails would run forever
+            if not done and len(rewards) == EPISODE_LIMIT:  # a baseline that never fails would run forever
                 raise ValueError(f"the baseline's episode from reset seed {seed + IL_SEED_OFFSET + episode} did not end within"
-                                 f" {BASELINE_EPISODE_LIMIT:,} steps; imitation needs whole episodes: give the env a time limit (max_episode_steps)")
+                                 f" {EPISODE_LIMIT:,} steps; imitation needs whole episodes: give the env a time limit (max_episode_steps)")
         returns_to_go, running = np.zeros(len(rewards)), 0.0
         for t in reversed(range(len(rewards))):  # Monte Carlo; a truncated tail is cut short, not bootstrapped
             running = rewards[t] + gamma * running
@@ -489,14 +489,16 @@ def evaluate(path: str, env_id: str, episodes: int, seed: int) -> list[float]:
     returns = []
     for i in range(episodes):
         obs, _ = env.reset(seed=seed + EVAL_SEED_OFFSET + i)
-        episode_return, done = 0.0, False
+        episode_return, done, steps = 0.0, False, 0
         while not done:
             x = obs_rms.normalize(obs) if obs_rms is not None else obs.astype(np.float32)
             with torch.inference_mode():
                 action = agent.actor_mean(torch.from_numpy(x).unsqueeze(0))[0].numpy()
             obs, reward, terminated, truncated, _ = env.step(to_env_units(action, low, high))
             episode_return += float(reward)
-            done = terminated or truncated
+            done, steps = terminated or truncated, steps + 1
+            if not done and steps == EPISODE_LIMIT:  # a policy that never fails would run for ever
+                raise ValueError(f"evaluation episode {i} did not end within {EPISODE_LIMIT:,} steps; give the env a time limit (max_episode_steps)")
         returns.append(episode_return)
     env.close()
     return returns
@@ -757,7 +759,10 @@ if __name__ == "__main__":
         model_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
         save_checkpoint(model_path, args.env_id, env, agent, obs_rms, args)
         print(f"model saved to {model_path}")
-        episodic_returns = evaluate(model_path, args.env_id, args.eval_episodes, args.seed)
+        try:
+            episodic_returns = evaluate(model_path, args.env_id, args.eval_episodes, args.seed)
+        except ValueError as err:  # the model is saved; only its evaluation failed
+            raise SystemExit(f"{args.exp_name}: error: {err}")
         for idx, episodic_return in enumerate(episodic_returns):
             writer.add_scalar("eval/episodic_return", episodic_return, idx)
         print(f"eval: mean return {np.mean(episodic_returns):.1f} over {len(episodic_returns)} episodes")

@@ -22,6 +22,8 @@ from envs.make import make_env
 from envs.pendulum import pendulum_swing_up
 from envs.walker2d import Walker2DBaseline
 
+EPISODE_LIMIT = 100_000  # steps: an episode still running after this many is in an env without a time limit
+
 Baseline = Callable[[np.ndarray], Optional[np.ndarray]]
 
 # A class stands for a stateful baseline: every get_baseline() call gets a fresh instance.
@@ -88,6 +90,8 @@ def rollout(env, policy: Baseline, seed: int) -> np.ndarray:
         rewards.append(float(reward))
         if terminated or truncated:
             return np.asarray(rewards)
+        if len(rewards) == EPISODE_LIMIT:  # a policy that never fails would run for ever
+            raise ValueError(f"the episode from reset seed {seed} did not end within {EPISODE_LIMIT:,} steps; give the env a time limit (max_episode_steps)")
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -4,6 +4,7 @@ import os
 import subprocess
 import sys
 
+import gymnasium as gym
 import numpy as np
 import pytest
 
@@ -180,3 +181,14 @@ def test_a_matrix_action_space_is_refused(script):
         gym.register("MatrixActions-v0", entry_point=MatrixActions)
     with pytest.raises(ValueError, match=r"has a Box\(-1.0, 1.0, \(2, 3\), float32\) action space; this script needs a flat continuous"):
         load_script(script).make_env("MatrixActions-v0", 0)
+
+
+def test_an_episode_that_never_ends_is_an_error_not_a_hang(monkeypatch):
+    from gymnasium.envs.classic_control.pendulum import PendulumEnv
+
+    from envs import baselines
+
+    monkeypatch.setattr(baselines, "EPISODE_LIMIT", 50)
+    assert len(rollout(gym.wrappers.TimeLimit(PendulumEnv(), 50), BASELINES["Pendulum-v1"], 0)) == 50  # as long as the limit: fine
+    with pytest.raises(ValueError, match=r"^the episode from reset seed 3 did not end within 50 steps; give the env a time limit"):
+        rollout(PendulumEnv(), BASELINES["Pendulum-v1"], 3)  # no TimeLimit, and Pendulum never terminates

@@ -166,7 +166,7 @@ def test_a_baseline_episode_that_never_ends_is_an_error_not_a_hang(script, monke
     from envs.pendulum import pendulum_swing_up
 
     module = load_script(script)
-    monkeypatch.setattr(module, "BASELINE_EPISODE_LIMIT", 50)
+    monkeypatch.setattr(module, "EPISODE_LIMIT", 50)
     _, rewards = module.baseline_rollout(gym.wrappers.TimeLimit(PendulumEnv(), 50), pendulum_swing_up, 0)
     assert len(rewards) == 50  # an episode as long as the limit is fine
     with pytest.raises(ValueError, match=r"^the baseline's episode from reset seed 3 did not end within 50 steps; give the env a time limit"):
@@ -187,3 +187,19 @@ def test_jirl_names_every_flag_an_endless_baseline_episode_needs(tmp_path):
     assert out.returncode != 0 and len(out.stderr.strip().splitlines()) == 1, out.stderr
     assert out.stderr.strip().endswith("did not end within 100,000 steps; give the env a time limit (max_episode_steps)"
                                        " or use --regret-estimator off and --guidance-schedule geometric"), out.stderr
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_an_evaluation_episode_that_never_ends_is_an_error_not_a_hang(script, tmp_path, monkeypatch):
+    if "EndlessPendulum-v0" not in gym.registry:  # Pendulum without a time limit: it never terminates
+        gym.register("EndlessPendulum-v0", entry_point="gymnasium.envs.classic_control.pendulum:PendulumEnv")
+    module = load_script(script)
+    monkeypatch.setattr(module, "EPISODE_LIMIT", 200)  # Pendulum-v1's own time limit
+    env, path = module.make_env("EndlessPendulum-v0", 0), str(tmp_path / "policy.cleanrl_model")
+    if script in ("ppo_il", "trpo_il"):
+        module.save_checkpoint(path, "EndlessPendulum-v0", env, module.Agent(3, 1, 16), None, module.Args(hidden_size=16))
+    else:
+        module.save_checkpoint(path, "EndlessPendulum-v0", env, module.Actor(3, 1, 16), module.SoftQNetwork(3, 1, 16), module.Args(hidden_size=16))
+    with pytest.raises(ValueError, match=r"^evaluation episode 0 did not end within 200 steps; give the env a time limit \(max_episode_steps\)$"):
+        module.evaluate(path, "EndlessPendulum-v0", 2, 1)
+    assert module.evaluate(path, "Pendulum-v1", 1, 1)[0] < 0  # an episode as long as the limit is fine
