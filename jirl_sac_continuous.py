@@ -232,7 +232,7 @@ def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.nd
         obs, reward, terminated, truncated, _ = env.step(check_baseline_action(action, env.action_space))
         rewards.append(float(reward))
         done = terminated or truncated
-        if not done and len(rewards) == EPISODE_LIMIT:  # a baseline that never fails would run forever
+        if not done and len(rewards) == EPISODE_LIMIT:  # a baseline that never fails would run for ever
             raise ValueError(f"the baseline's episode from reset seed {seed} did not end within {EPISODE_LIMIT:,} steps;"
                              " give the env a time limit (max_episode_steps) or use --regret-estimator off")
     return first_obs, np.asarray(rewards)

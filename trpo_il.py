@@ -240,7 +240,7 @@ def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.nd
         obs, reward, terminated, truncated, _ = env.step(check_baseline_action(action, env.action_space))
         rewards.append(float(reward))
         done = terminated or truncated
-        if not done and len(rewards) == EPISODE_LIMIT:  # a baseline that never fails would run forever
+        if not done and len(rewards) == EPISODE_LIMIT:  # a baseline that never fails would run for ever
             raise ValueError(f"the baseline's episode from reset seed {seed} did not end within {EPISODE_LIMIT:,} steps;"
                              " give the env a time limit (max_episode_steps) or use --regret-estimator off")
     return first_obs, np.asarray(rewards)
@@ -436,7 +436,7 @@ def collect_baseline_data(env: gym.Env, baseline: Callable, steps: int, seed: in
             discounted_return = discounted_return * gamma + rewards[-1]  # as --norm-reward accumulates it
             running_list.append(discounted_return)
             done = terminated or truncated
-            if not done and len(rewards) == EPISODE_LIMIT:  # a baseline that never fails would run forever
+            if not done and len(rewards) == EPISODE_LIMIT:  # a baseline that never fails would run for ever
                 raise ValueError(f"the baseline's episode from reset seed {seed + IL_SEED_OFFSET + episode} did not end within"
                                  f" {EPISODE_LIMIT:,} steps; imitation needs whole episodes: give the env a time limit (max_episode_steps)")
         returns_to_go, running = np.zeros(len(rewards)), 0.0
