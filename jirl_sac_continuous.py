@@ -123,6 +123,7 @@ class Args:
     def __post_init__(self) -> None:
         """Out-of-range values end the parse with a message naming each flag (tyro prints it)."""
         rules = [
+            ("exp_name", bool(self.exp_name) and os.path.basename(self.exp_name) == self.exp_name, "a name, not empty and not a path"),
             ("seed", 0 <= self.seed < 2**32, "in [0, 2**32)"),  # numpy's global seed
             ("torch_threads", self.torch_threads >= 1, ">= 1"),
             ("eval_episodes", self.eval_episodes >= 1, ">= 1"),

@@ -45,6 +45,10 @@ def test_every_number_has_a_range(label):
 @pytest.mark.parametrize(
     "script, field, value",
     [
+        ("sac_continuous", "exp_name", "ablations/sigma"),  # the run trained, then its model could not be saved
+        ("jirl_sac_continuous", "exp_name", ""),
+        ("ppo_il", "exp_name", "a/b"),
+        ("trpo_il", "exp_name", "a/b"),
         ("sac_continuous", "buffer_size", 0),  # was an IndexError in the first buffer write
         ("sac_continuous", "tau", 1.5),
         ("sac_continuous", "gamma", 1.01),
