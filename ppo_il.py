@@ -507,7 +507,7 @@ def evaluate(path: str, env_id: str, episodes: int, seed: int) -> list[float]:
 
 if __name__ == "__main__":
     args = resolve_hyperparameters(tyro.cli(Args))
-    sys.path.append(os.getcwd())  # `module:...` in --env-id and --baseline also finds modules in the current directory, as `python -m` does
+    sys.path.append(os.getcwd())  # `module:...` in --env-id and --baseline may name a module in the current directory; last, so it shadows nothing installed
     batch_size = args.num_steps
     minibatch_size = batch_size // args.num_minibatches  # the smallest minibatch: np.array_split spreads the remainder
     num_iterations = max(1, args.total_timesteps // batch_size)

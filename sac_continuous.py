@@ -493,7 +493,7 @@ def evaluate(path: str, env_id: str, episodes: int, seed: int) -> list[float]:
 
 if __name__ == "__main__":
     args = tyro.cli(Args)
-    sys.path.append(os.getcwd())  # `module:...` in --env-id and --baseline also finds modules in the current directory, as `python -m` does
+    sys.path.append(os.getcwd())  # `module:...` in --env-id and --baseline may name a module in the current directory; last, so it shadows nothing installed
     run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
 
     # TRY NOT TO MODIFY: seeding
