@@ -170,6 +170,9 @@ def make_env(env_id: str, seed: int, capture_video: bool = False, run_name: str 
     if project_make_env is not None:
         env = project_make_env(env_id, seed, **render)
     else:
+        module, sep, name = env_id.partition(":")
+        if sep and (not module or module.startswith(".") or not name or sep in name):  # gym.make would fail with a bare ValueError or TypeError
+            raise ValueError(f"env id {env_id!r} must be a registered id or look like 'module:Env-v0' (an absolute module name, one colon)")
         try:
             env = gym.make(env_id, **render)
         except gym.error.DependencyNotInstalled as err:  # a known id whose simulator is missing
@@ -198,8 +201,8 @@ def load_baseline(spec: str, env_id: str) -> Optional[Callable]:
     """The baseline `module:function` (a class is instantiated), else this project's one for env_id, else None."""
     if spec:
         module_name, sep, attribute = spec.partition(":")
-        if not sep:
-            raise ValueError(f"baseline {spec!r} must look like 'module:function'")
+        if not (module_name and sep and attribute) or module_name.startswith(".") or sep in attribute:
+            raise ValueError(f"baseline {spec!r} must look like 'module:function' (an absolute module name, one colon)")
         try:
             baseline = getattr(importlib.import_module(module_name), attribute)
         except (ImportError, AttributeError) as err:

@@ -42,8 +42,8 @@ EXPERTS: dict[str, Baseline] = {
 def load_baseline(spec: str) -> Baseline:
     """Import ``module:attribute``; a class is instantiated with no arguments."""
     module_name, sep, attribute = spec.partition(":")
-    if not sep or not module_name or not attribute:
-        raise ValueError(f"baseline {spec!r} must look like 'module:function'")
+    if not (module_name and sep and attribute) or module_name.startswith(".") or sep in attribute:
+        raise ValueError(f"baseline {spec!r} must look like 'module:function' (an absolute module name, one colon)")
     try:
         module = importlib.import_module(module_name)
     except ImportError as err:

@@ -32,6 +32,9 @@ def make_env(env_id: str, seed: int | None = None, render_mode: str | None = Non
     ``randomize_lighting`` for JetRacerTrack-v0). Raises ``ValueError`` with a one-line message for an
     unknown id.
     """
+    module, sep, name = env_id.partition(":")
+    if sep and (not module or module.startswith(".") or not name or sep in name):  # gym.make would fail with a bare ValueError or TypeError
+        raise ValueError(f"env id {env_id!r} must be a registered id or look like 'module:Env-v0' (an absolute module name, one colon)")
     _register_lazily(env_id)
     if render_mode is not None:  # only when asked for: an env whose constructor has no render_mode still works
         kwargs["render_mode"] = render_mode

@@ -159,6 +159,36 @@ def test_an_env_id_whose_module_does_not_import_is_a_one_line_error(script, fall
         make_env("no_such_module:Env-v0", 0)
 
 
+# gym.make and importlib fail on these with "Empty module name", "too many values to unpack" or a TypeError traceback
+MALFORMED = [":Env-v0", ".relative:Env-v0", "..x:Env-v0", "a:b:c", "x:"]
+
+
+@pytest.mark.parametrize("script, fallback", [*((script, fallback) for script in SCRIPTS for fallback in (False, True)), ("envs", False)])
+@pytest.mark.parametrize("env_id", MALFORMED)
+def test_a_malformed_module_env_id_is_a_one_line_error_naming_the_form(script, fallback, env_id, monkeypatch):
+    if script == "envs":
+        from envs import make_env
+    else:
+        module = load_script(script)
+        if fallback:
+            monkeypatch.setattr(module, "project_make_env", None)
+        make_env = module.make_env
+    expected = f"env id {env_id!r} must be a registered id or look like 'module:Env-v0' (an absolute module name, one colon)"
+    with pytest.raises(ValueError) as raised:
+        make_env(env_id, 0)
+    assert str(raised.value) == expected
+
+
+@pytest.mark.parametrize("script", [*SCRIPTS, "envs"])
+@pytest.mark.parametrize("spec", [":f", "math:", ".relative:f", "..x:f", "math:pi:e", "math"])
+def test_a_malformed_baseline_spec_is_a_one_line_error_naming_the_form(script, spec):
+    from envs import load_baseline
+
+    with pytest.raises(ValueError) as raised:
+        load_baseline(spec) if script == "envs" else load_script(script).load_baseline(spec, "Pendulum-v1")
+    assert str(raised.value) == f"baseline {spec!r} must look like 'module:function' (an absolute module name, one colon)"
+
+
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_a_baseline_episode_that_never_ends_is_an_error_not_a_hang(script, monkeypatch):
     from gymnasium.envs.classic_control.pendulum import PendulumEnv
