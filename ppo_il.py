@@ -508,13 +508,30 @@ def evaluate(path: str, env_id: str, episodes: int, seed: int) -> list[float]:
     return returns
 
 
+def claim_run_dir(run_name: str) -> str:
+    """Create runs/{run_name} and return the name; a run that finds it taken (one launched in the same
+    second, as a sweep is) takes run_name_2, _3, ...: two runs never share a directory, where TensorBoard
+    would merge their curves and one model would overwrite the other."""
+    name, n = run_name, 1
+    while True:
+        os.makedirs(os.path.dirname(f"runs/{name}"), exist_ok=True)  # a namespaced env id ("ns/Env-v0") nests
+        try:
+            os.mkdir(f"runs/{name}")  # atomic: of two runs making it at once, exactly one succeeds
+            return name
+        except FileExistsError:
+            n += 1
+            name = f"{run_name}_{n}"
+        except FileNotFoundError:  # a run that ended on bad input removed runs/, empty, in between: again
+            pass
+
+
 if __name__ == "__main__":
     args = resolve_hyperparameters(tyro.cli(Args))
     sys.path.append(os.getcwd())  # `module:...` in --env-id and --baseline may name a module in the current directory; last, so it shadows nothing installed
     batch_size = args.num_steps
     minibatch_size = batch_size // args.num_minibatches  # the smallest minibatch: np.array_split spreads the remainder
     num_iterations = max(1, args.total_timesteps // batch_size)
-    run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    run_name = claim_run_dir(f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}")  # before make_env, whose video folder shares the name
 
     # TRY NOT TO MODIFY: seeding
     random.seed(args.seed)
@@ -533,6 +550,7 @@ if __name__ == "__main__":
             need = "2 (--norm-adv divides by their advantages' std)" if args.norm_adv else "1"
             raise ValueError(f"--num-steps {args.num_steps} in --num-minibatches {args.num_minibatches} leaves minibatches of {minibatch_size} step(s); they need {need}")
     except ValueError as err:
+        os.removedirs(f"runs/{run_name}")  # nothing written: the claimed directory goes, and runs/ if it is empty now
         raise SystemExit(f"{args.exp_name}: error: {err}")
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
     low, high = env.action_space.low, env.action_space.high

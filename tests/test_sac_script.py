@@ -5,6 +5,7 @@ import runpy
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -159,6 +160,7 @@ def test_missing_baseline_errors_only_when_regret_is_demanded(tmp_path):
         tmp_path,
     )
     assert out.returncode != 0 and "no baseline for MountainCarContinuous-v0" in out.stderr
+    assert not (tmp_path / "runs").exists(), "the run's directory, claimed before the check, is gone"
 
 
 def test_script_copied_alone_runs_with_a_user_baseline(tmp_path):
@@ -174,6 +176,43 @@ def test_script_copied_alone_runs_with_a_user_baseline(tmp_path):
     assert "baseline regret estimator: paired" in out.stdout
     (run_dir,) = (tmp_path / "runs").iterdir()
     assert "charts/baseline_regret_per_step" in scalars(run_dir)
+
+
+SCRIPTS = ["sac_continuous", "jirl_sac_continuous", "ppo_il", "trpo_il"]
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_claim_run_dir_never_gives_two_runs_one_directory(script, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    claim = load_script(script).claim_run_dir
+    assert [claim("Env-v0__x__1__7") for _ in range(3)] == ["Env-v0__x__1__7", "Env-v0__x__1__7_2", "Env-v0__x__1__7_3"]
+    assert claim("ns/Env-v0__x__1__7") == "ns/Env-v0__x__1__7"  # a namespaced env id ("ns/Env-v0") nests
+    made = sorted(p.relative_to(tmp_path / "runs").as_posix() for p in (tmp_path / "runs").rglob("*"))
+    assert made == ["Env-v0__x__1__7", "Env-v0__x__1__7_2", "Env-v0__x__1__7_3", "ns", "ns/Env-v0__x__1__7"]
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_run_whose_name_is_taken_writes_beside_it_and_bad_input_leaves_runs_as_it_was(script, tmp_path):
+    # every name the run could take in the next two minutes is taken, as by a run launched in the same second
+    now = int(time.time())
+    taken = {tmp_path / "runs" / f"Pendulum-v1__{script}__1__{t}" for t in range(now - 1, now + 120)}
+    for earlier in taken:
+        earlier.mkdir(parents=True)
+        (earlier / "earlier_run").write_text("kept")
+    if script in ("ppo_il", "trpo_il"):
+        budget = ["--num-steps", "256", "--total-timesteps", "256", "--il-steps", "400", "--il-max-epochs", "5"]
+    else:
+        budget = ["--total-timesteps", "300", "--learning-starts", "100", "--batch-size", "16"]
+    args = [*budget, "--hidden-size", "16", "--baseline-eval-episodes", "1", "--save-model", "--eval-episodes", "1"]
+    out = run_script(ROOT / f"{script}.py", args, tmp_path)
+    assert out.returncode == 0, out.stderr
+    (run_dir,) = set((tmp_path / "runs").iterdir()) - taken
+    assert run_dir.name.endswith("_2") and run_dir.with_name(run_dir.name[:-2]) in taken
+    assert any(run_dir.glob("events.out.tfevents.*")) and any(run_dir.glob(f"{script}.cleanrl_model"))
+    assert all([p.name for p in earlier.iterdir()] == ["earlier_run"] for earlier in taken), "nothing written into another run"
+    out = run_script(ROOT / f"{script}.py", ["--env-id", "NoSuchEnv-v0"], tmp_path)
+    assert out.returncode != 0 and "unknown env id 'NoSuchEnv-v0'" in out.stderr
+    assert set((tmp_path / "runs").iterdir()) == taken | {run_dir}, "bad input removes only the directory it claimed"
 
 
 def test_capture_video_records_the_training_episodes(tmp_path):

@@ -295,6 +295,7 @@ def test_unknown_env_is_a_one_line_error(name, tmp_path):
     out = run_script(ROOT / f"{name}.py", ["--env-id", "NoSuchEnv-v0"], tmp_path)
     assert out.returncode != 0 and "unknown env id 'NoSuchEnv-v0'" in out.stderr
     assert len(out.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "runs").exists(), "nothing is written before the input is validated"
 
 
 def test_zoo_hyperparameters_fill_only_what_the_user_left_unset():
