@@ -145,16 +145,24 @@ def test_every_script_runs_an_env_without_render_mode_and_with_a_fixed_action_di
     assert "baseline regret estimator: paired" in out.stdout
 
 
-# fallback: the scripts' own gym.make, as when a script is copied alone
-@pytest.mark.parametrize("script, fallback", [*((script, fallback) for script in SCRIPTS for fallback in (False, True)), ("envs", False)])
-def test_an_env_id_whose_module_does_not_import_is_a_one_line_error(script, fallback, monkeypatch):
+# every make_env: each script's with envs/ and with its own gym.make (fallback, as when copied alone), and envs'
+EVERY_MAKE_ENV = [*((script, fallback) for script in SCRIPTS for fallback in (False, True)), ("envs", False)]
+
+
+def make_env_of(script: str, fallback: bool, monkeypatch):
     if script == "envs":
         from envs import make_env
-    else:
-        module = load_script(script)
-        if fallback:
-            monkeypatch.setattr(module, "project_make_env", None)
-        make_env = module.make_env
+
+        return make_env
+    module = load_script(script)
+    if fallback:
+        monkeypatch.setattr(module, "project_make_env", None)
+    return module.make_env
+
+
+@pytest.mark.parametrize("script, fallback", EVERY_MAKE_ENV)
+def test_an_env_id_whose_module_does_not_import_is_a_one_line_error(script, fallback, monkeypatch):
+    make_env = make_env_of(script, fallback, monkeypatch)
     with pytest.raises(ValueError, match=r"^env id 'no_such_module:Env-v0' needs a module that does not import: No module named 'no_such_module'"):
         make_env("no_such_module:Env-v0", 0)
 
@@ -163,16 +171,10 @@ def test_an_env_id_whose_module_does_not_import_is_a_one_line_error(script, fall
 MALFORMED = [":Env-v0", ".relative:Env-v0", "..x:Env-v0", "a:b:c", "x:"]
 
 
-@pytest.mark.parametrize("script, fallback", [*((script, fallback) for script in SCRIPTS for fallback in (False, True)), ("envs", False)])
+@pytest.mark.parametrize("script, fallback", EVERY_MAKE_ENV)
 @pytest.mark.parametrize("env_id", MALFORMED)
 def test_a_malformed_module_env_id_is_a_one_line_error_naming_the_form(script, fallback, env_id, monkeypatch):
-    if script == "envs":
-        from envs import make_env
-    else:
-        module = load_script(script)
-        if fallback:
-            monkeypatch.setattr(module, "project_make_env", None)
-        make_env = module.make_env
+    make_env = make_env_of(script, fallback, monkeypatch)
     expected = f"env id {env_id!r} must be a registered id or look like 'module:Env-v0' (an absolute module name, one colon)"
     with pytest.raises(ValueError) as raised:
         make_env(env_id, 0)
