@@ -96,10 +96,10 @@ def rollout(env, policy: Baseline, seed: int) -> np.ndarray:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description="Measure a baseline controller.")
-    parser.add_argument("--env-id", default="Pendulum-v1")
+    parser.add_argument("--env-id", default="Pendulum-v1", help="any env id the scripts accept (default: %(default)s)")
     parser.add_argument("--baseline", default="", help="module:function; default: the env's own")
-    parser.add_argument("--episodes", type=int, default=20)
-    parser.add_argument("--seed", type=int, default=0, help="episode i is reset with seed + i")
+    parser.add_argument("--episodes", type=int, default=20, help="episodes to run (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="episode i is reset with seed + i (default: %(default)s)")
     args = parser.parse_args(argv)
     if args.episodes < 1 or args.seed < 0:
         parser.error(f"--episodes must be >= 1 and --seed >= 0, got {args.episodes} and {args.seed}")
