@@ -192,6 +192,23 @@ def test_claim_run_dir_never_gives_two_runs_one_directory(script, tmp_path, monk
 
 
 @pytest.mark.parametrize("script", SCRIPTS)
+def test_claim_run_dir_tries_again_when_runs_vanishes_in_between(script, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "runs").mkdir()
+    real_mkdir, vanished = os.mkdir, []
+
+    def mkdir(path, *args, **kwargs):  # runs/, empty, is removed after makedirs, as by a run that ended on bad input
+        if str(path).startswith("runs/") and not vanished:
+            vanished.append(path)
+            (tmp_path / "runs").rmdir()
+        return real_mkdir(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "mkdir", mkdir)
+    assert load_script(script).claim_run_dir("Env-v0__x__1__7") == "Env-v0__x__1__7"
+    assert vanished == ["runs/Env-v0__x__1__7"] and (tmp_path / "runs" / "Env-v0__x__1__7").is_dir()
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
 def test_a_run_whose_name_is_taken_writes_beside_it_and_bad_input_leaves_runs_as_it_was(script, tmp_path):
     # every name the run could take in the next two minutes is taken, as by a run launched in the same second
     now = int(time.time())
