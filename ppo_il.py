@@ -549,9 +549,11 @@ if __name__ == "__main__":
         if minibatch_size < (2 if args.norm_adv else 1):  # one step's advantage has no std to normalise by
             need = "2 (--norm-adv divides by their advantages' std)" if args.norm_adv else "1"
             raise ValueError(f"--num-steps {args.num_steps} in --num-minibatches {args.num_minibatches} leaves minibatches of {minibatch_size} step(s); they need {need}")
-    except ValueError as err:
-        os.removedirs(f"runs/{run_name}")  # nothing written: the claimed directory goes, and runs/ if it is empty now
-        raise SystemExit(f"{args.exp_name}: error: {err}")
+    except BaseException as err:  # bad input, or a crash in a user's env: either way the claimed directory goes, and runs/ if now empty
+        os.removedirs(f"runs/{run_name}")
+        if isinstance(err, ValueError):
+            raise SystemExit(f"{args.exp_name}: error: {err}")
+        raise  # anything else keeps its traceback
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
     low, high = env.action_space.low, env.action_space.high
 

@@ -617,9 +617,11 @@ if __name__ == "__main__":
         baseline = load_baseline(args.baseline, args.env_id)
         if baseline is None:
             raise ValueError(f"TRPO+IL imitates a baseline and {args.env_id} has none; pass --baseline module:function")
-    except ValueError as err:
-        os.removedirs(f"runs/{run_name}")  # nothing written: the claimed directory goes, and runs/ if it is empty now
-        raise SystemExit(f"{args.exp_name}: error: {err}")
+    except BaseException as err:  # bad input, or a crash in a user's env: either way the claimed directory goes, and runs/ if now empty
+        os.removedirs(f"runs/{run_name}")
+        if isinstance(err, ValueError):
+            raise SystemExit(f"{args.exp_name}: error: {err}")
+        raise  # anything else keeps its traceback
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
     low, high = env.action_space.low, env.action_space.high
 

@@ -232,6 +232,21 @@ def test_a_run_whose_name_is_taken_writes_beside_it_and_bad_input_leaves_runs_as
     assert set((tmp_path / "runs").iterdir()) == taken | {run_dir}, "bad input removes only the directory it claimed"
 
 
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_an_env_that_crashes_on_construction_keeps_its_traceback_and_leaves_no_run_directory(script, tmp_path):
+    (tmp_path / "broken.py").write_text(
+        "import gymnasium as gym\n"
+        "class Broken(gym.Env):\n"
+        "    def __init__(self):\n"
+        "        raise RuntimeError('the simulator licence server is down')\n"
+        "gym.register('Broken-v0', entry_point=Broken)\n"
+    )  # fmt: skip
+    out = run_script(ROOT / f"{script}.py", ["--env-id", "broken:Broken-v0"], tmp_path)
+    assert out.returncode != 0 and "Traceback" in out.stderr
+    assert out.stderr.strip().endswith("RuntimeError: the simulator licence server is down")
+    assert not (tmp_path / "runs").exists(), "the directory claimed before make_env is gone"
+
+
 def test_capture_video_records_the_training_episodes(tmp_path):
     args = ["--total-timesteps", "200", "--learning-starts", "100", "--capture-video", "--baseline-eval-episodes", "1", *TINY]
     out = run_script(ROOT / "sac_continuous.py", args, tmp_path)
