@@ -73,7 +73,7 @@ class Common:
     steering_axis: int = 0
     """gamepad axis the human steers with"""
     log_dir: str = "runs"
-    """TensorBoard logs go to log_dir/{mode}__{time}"""
+    """TensorBoard logs go to log_dir/{mode}__{time} (_2, _3, ... if a session started in the same second took it)"""
     seed: int = 0
     """seed of the simulated car's start poses"""
 
@@ -195,6 +195,20 @@ class SafetyFilter:
         return self.steering, throttle
 
 
+def claim_log_dir(log_dir: str, name: str) -> str:
+    """Create log_dir/name, or name_2, _3, ... if a session started in the same second took it (simulated
+    cars trained side by side): two sessions never share a directory, where TensorBoard would merge their curves."""
+    os.makedirs(log_dir, exist_ok=True)
+    path, n = os.path.join(log_dir, name), 1
+    while True:
+        try:
+            os.mkdir(path)  # atomic: of two sessions making it at once, exactly one succeeds
+            return path
+        except FileExistsError:
+            n += 1
+            path = os.path.join(log_dir, f"{name}_{n}")
+
+
 class CarSession:
     """The link, the camera (and the simulator behind both in sim-in-the-loop), safety, timing and logs."""
 
@@ -237,7 +251,7 @@ class CarSession:
             self.close()
             accepts = f"; it accepts {info.fields[3]}-{info.fields[4]} ms" if info is not None else "; it did not answer HELLO either"
             raise SystemExit(f"{mode}: error: the controller on {args.port} did not arm with --watchdog-ms {args.watchdog_ms}{accepts}")
-        self.writer = SummaryWriter(os.path.join(args.log_dir, f"{mode}__{int(time.time())}"))  # no log of a session that never armed
+        self.writer = SummaryWriter(claim_log_dir(args.log_dir, f"{mode}__{int(time.time())}"))  # no log of a session that never armed
 
     def _on_signal(self, *_) -> None:
         self.stop_requested = True
@@ -465,8 +479,13 @@ def report(session: CarSession, rewards: List[float], mode: str) -> None:
     print(f"{mode}: {'; '.join(parts)}")
 
 
-def save_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuffer, counters: dict, args: Train) -> None:
-    """Agent, replay buffer and counters, written to a temporary file then renamed: never half-written."""
+class CheckpointTaken(Exception):
+    """A fresh run's first save found its path taken (by another run started on the same --checkpoint)."""
+
+
+def save_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuffer, counters: dict, args: Train, create: bool = False) -> None:
+    """Agent, replay buffer and counters, and beside them the policy for `run`, each written atomically.
+    create: path must not exist yet (a fresh run's first save); CheckpointTaken if it does."""
     import torch
 
     n = rb.size
@@ -478,13 +497,26 @@ def save_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
         "counters": counters,
         "hidden_size": args.jirl.hidden_size,
     }
-    tmp = f"{path}.tmp"
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    torch.save(state, tmp)
-    os.replace(tmp, path)
-    spaces = CarSpaces()
-    jirl.save_checkpoint(f"{policy_path(path)}.tmp", "JetRacer", spaces, sac.actor, sac.qf, args.jirl)
-    os.replace(f"{policy_path(path)}.tmp", policy_path(path))
+    write_atomically(path, lambda tmp: torch.save(state, tmp), create)
+    write_atomically(policy_path(path), lambda tmp: jirl.save_checkpoint(tmp, "JetRacer", CarSpaces(), sac.actor, sac.qf, args.jirl))
+
+
+def write_atomically(path: str, write: Callable[[str], None], create: bool = False) -> None:
+    """write(tmp) to a temporary file of this process, then rename it to path: never half-written, and
+    nothing left behind on failure. create: path must not exist yet; CheckpointTaken if it does."""
+    tmp = f"{path}.{os.getpid()}.tmp"  # its own: two runs given one --checkpoint must not rename each other's
+    try:
+        write(tmp)
+        if create:  # atomic: of two fresh runs started together on one --checkpoint, exactly one gets it
+            try:
+                os.close(os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+            except FileExistsError:
+                raise CheckpointTaken(path) from None
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
 
 
 def policy_path(state_path: str) -> str:
@@ -556,13 +588,15 @@ def train(args: Train) -> dict:
     elif os.path.exists(args.checkpoint):  # a fresh run would overwrite it at its first pause
         raise SystemExit(f"train: error: {args.checkpoint} holds an earlier training; pass --resume to continue it, or another --checkpoint")
 
-    def checkpoint() -> None:
+    def checkpoint(create: bool = False) -> None:
         try:
-            save_training_state(args.checkpoint, sac, rb, counters, args)
+            save_training_state(args.checkpoint, sac, rb, counters, args, create)
+        except CheckpointTaken:  # between the check above and now
+            raise SystemExit(f"train: error: another run created {args.checkpoint} as this one started; pass another --checkpoint") from None
         except OSError as err:  # disk full, no permission: the run ends (the car stops in `finally`), saying why
             raise SystemExit(f"train: error: cannot write --checkpoint {args.checkpoint}: {err}") from None
 
-    checkpoint()  # before the car is armed: a checkpoint that cannot be written fails now, not at the first pause
+    checkpoint(create=not args.resume)  # before the car is armed: a checkpoint that cannot be written fails now, not at the first pause
     session = CarSession(args, "train")
     follower = LaneFollower()
     gate = jirl.Gate(hp.gate_k)

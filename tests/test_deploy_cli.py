@@ -508,11 +508,11 @@ def test_a_checkpoint_that_cannot_be_written_mid_run_stops_the_car(tmp_path, mon
     saves, real_save = [], jetracer.save_training_state
     controllers = []
 
-    def save(path, sac, rb, counters, args):
+    def save(path, sac, rb, counters, args, create=False):
         saves.append(counters["step"])
         if len(saves) == 3:
             raise OSError(errno.ENOSPC, "No space left on device")
-        real_save(path, sac, rb, counters, args)
+        real_save(path, sac, rb, counters, args, create)
 
     real_close = jetracer.CarSession.close
 
@@ -692,3 +692,55 @@ def test_a_damaged_training_state_is_named_and_kept(tmp_path, part, message):
     with pytest.raises(SystemExit, match="^train: error: .*damaged"):  # before the car is armed or anything is written
         jetracer.train(args)
     assert path.read_bytes() == written
+
+
+def test_sessions_started_in_the_same_second_log_to_directories_of_their_own(tmp_path, monkeypatch):
+    monkeypatch.setattr(jetracer.time, "time", lambda: 1_800_000_000.0)  # every session starts in this second
+    log_dirs = []
+    for _ in range(3):
+        session = jetracer.CarSession(jetracer.Baseline(log_dir=str(tmp_path / "logs")), "train")
+        log_dirs.append(session.writer.log_dir)
+        session.close()
+    assert [Path(d).name for d in log_dirs] == ["train__1800000000", "train__1800000000_2", "train__1800000000_3"]
+    assert sorted(p.name for p in (tmp_path / "logs").iterdir()) == sorted(Path(d).name for d in log_dirs)
+
+
+def test_a_fresh_run_never_overwrites_the_checkpoint_another_run_created_as_it_started(tmp_path, monkeypatch):
+    path = tmp_path / "train.pt"
+    path.write_bytes(b"the other run's first save")
+    real_exists = jetracer.os.path.exists
+    # the other run saves between this run's check and its first save: the check sees nothing
+    monkeypatch.setattr(jetracer.os.path, "exists", lambda p: False if str(p) == str(path) else real_exists(p))
+    hp = jetracer.car_jirl_defaults()
+    hp.hidden_size = 8
+    with pytest.raises(SystemExit, match=f"^train: error: another run created {re.escape(str(path))} as this one started; pass another --checkpoint$"):
+        jetracer.train(jetracer.Train(jirl=hp, checkpoint=str(path), total_steps=50, log_dir=str(tmp_path / "logs")))
+    assert path.read_bytes() == b"the other run's first save"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["train.pt"]  # no temporary file left, the car never armed: no logs
+
+
+def test_a_save_writes_through_a_temporary_file_of_its_own(tmp_path):
+    hp = jetracer.car_jirl_defaults()
+    hp.hidden_size = 8
+    path = tmp_path / "train.pt"
+    for other in (f"{path}.tmp", f"{path}.actor.cleanrl_model.tmp"):  # what another process could be writing
+        Path(other).write_bytes(b"another process's half-written file")
+    sac, rb = jetracer.jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, hp), jetracer.jirl.ReplayBuffer(10, jetracer.OBS_SIZE, 2, seed=0)
+    args = jetracer.Train(jirl=hp, checkpoint=str(path))
+    jetracer.save_training_state(str(path), sac, rb, dict(jetracer.TRAIN_COUNTERS, step=3), args, create=True)
+    assert torch.load(path, weights_only=True)["counters"]["step"] == 3
+    assert jetracer.jirl.load_checkpoint(jetracer.policy_path(str(path)))["hidden_size"] == 8
+    for other in (f"{path}.tmp", f"{path}.actor.cleanrl_model.tmp"):
+        assert Path(other).read_bytes() == b"another process's half-written file"
+    assert len(list(tmp_path.iterdir())) == 4  # the two files above, the state and its policy: nothing else left
+    with pytest.raises(jetracer.CheckpointTaken):  # a fresh run's first save never replaces a file
+        jetracer.save_training_state(str(path), sac, rb, dict(jetracer.TRAIN_COUNTERS, step=5), args, create=True)
+    assert torch.load(path, weights_only=True)["counters"]["step"] == 3 and len(list(tmp_path.iterdir())) == 4
+
+    def half_write(tmp):  # a disk that fills up halfway
+        Path(tmp).write_bytes(b"half")
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError, match="No space left"):
+        jetracer.write_atomically(str(path), half_write)
+    assert torch.load(path, weights_only=True)["counters"]["step"] == 3 and len(list(tmp_path.iterdir())) == 4
