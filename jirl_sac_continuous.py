@@ -212,15 +212,17 @@ def load_baseline(spec: str, env_id: str) -> Optional[Callable]:
 
 
 def check_baseline_action(action, space: gym.spaces.Box) -> np.ndarray:
-    """The baseline's action shaped like the action space (a bare number for a 1-D space is fine);
-    ValueError unless it holds one finite number per action dimension (env units)."""
+    """The baseline's action shaped like the action space (a bare number for a 1-D space is fine) and
+    clipped to its bounds, as the agent's always is: the baseline measured is the one that is handed
+    control, on envs that do not clip by themselves too. ValueError unless it holds one finite number
+    per action dimension (env units)."""
     try:
         values = np.asarray(action, dtype=np.float64)
     except (TypeError, ValueError):
         values = np.array([np.nan])
     if values.size != math.prod(space.shape) or not np.all(np.isfinite(values)):
         raise ValueError(f"the baseline returned {action!r}; expected {math.prod(space.shape)} finite number(s) in env units")
-    return np.asarray(action).reshape(space.shape)
+    return np.clip(np.asarray(action).reshape(space.shape), space.low, space.high)
 
 
 def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.ndarray, np.ndarray]:

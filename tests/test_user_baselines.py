@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from conftest import ROOT, load_script
-from test_sac_script import run_script
+from test_sac_script import run_script, scalars
 
 SCRIPTS = ["sac_continuous", "jirl_sac_continuous", "ppo_il", "trpo_il"]
 USER_BASELINES = """
@@ -41,6 +41,11 @@ def test_check_baseline_action(script):
         with pytest.raises(ValueError, match="expected 1 finite number"):
             check(bad, space)
     assert check([[1.0, 2.0]], gym.spaces.Box(-5, 5, shape=(2,))).shape == (2,)
+    # beyond the bounds: clipped to them, as the agent's action always is
+    assert check(3.0, space)[0] == 2.0 and check(np.array([-7.0], dtype=np.float32), space).tolist() == [-2.0]
+    assert check(np.array([-7.0], dtype=np.float32), space).dtype == np.float32
+    asymmetric = gym.spaces.Box(np.array([0.0, -5.0], np.float32), np.array([2.0, 1.0], np.float32))
+    assert check([5.0, -2.0], asymmetric).tolist() == [2.0, -2.0] and check([-1.0, 9.0], asymmetric).tolist() == [0.0, 1.0]
 
 
 @pytest.mark.parametrize("script", SCRIPTS)
@@ -143,6 +148,61 @@ def test_every_script_runs_an_env_without_render_mode_and_with_a_fixed_action_di
     out = run_script(path, args, tmp_path, env)
     assert out.returncode == 0, out.stderr
     assert "baseline regret estimator: paired" in out.stdout
+
+
+UNCLIPPED_ENV = """
+import gymnasium as gym
+import numpy as np
+
+
+class Unclipped(gym.Env):
+    '''Applies whatever action it is given, as many users' envs do: reward -|a|^2 a step, 20 steps.'''
+
+    def __init__(self):
+        self.observation_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self.action_space = gym.spaces.Box(np.array([-1.0, 0.0], np.float32), np.array([1.0, 4.0], np.float32))
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return np.zeros(2, np.float32), {}
+
+    def step(self, action):
+        return np.zeros(2, np.float32), -float(np.sum(np.square(action))), False, False, {}
+
+
+gym.register("Unclipped-v0", entry_point=Unclipped, max_episode_steps=20)
+
+
+def saturating(obs):  # beyond both bounds: clipped to (1, 0) it earns -1 a step; as given, -25
+    return np.array([3.0, -4.0])
+"""
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_the_baseline_is_measured_as_it_acts_under_jirl_clipped_to_the_bounds(script, tmp_path, monkeypatch):
+    (tmp_path / "unclipped_env.py").write_text(UNCLIPPED_ENV)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import unclipped_env
+
+    _, rewards = load_script(script).baseline_rollout(gym.make("unclipped_env:Unclipped-v0"), unclipped_env.saturating, seed=0)
+    assert rewards.tolist() == [-1.0] * 20
+
+
+def test_jirl_logs_the_return_of_the_baseline_it_hands_control_to(tmp_path):
+    (tmp_path / "unclipped_env.py").write_text(UNCLIPPED_ENV)
+    env = {key: value for key, value in os.environ.items() if key != "PYTHONPATH"}
+    args = ["--env-id", "unclipped_env:Unclipped-v0", "--baseline", "unclipped_env:saturating", "--hidden-size", "16",
+            "--batch-size", "16", "--total-timesteps", "200", "--learning-starts", "100", "--baseline-eval-episodes", "2"]  # fmt: skip
+    out = run_script(ROOT / "jirl_sac_continuous.py", args, tmp_path, env)
+    assert out.returncode == 0, out.stderr
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    logged = scalars(run_dir)
+    assert logged["charts/baseline_return"] == [-20.0]  # 20 steps of -1: clipped, not the -25 a step asked for
+    returns = np.array(logged["charts/episodic_return"])
+    assert list(returns[:5]) == [-20.0] * 5  # the episodes the baseline drove earned that too
+    # the paired regret is against that baseline: max(0, -20 - R) an episode (against -500, the agent's worse episodes were free)
+    np.testing.assert_allclose(logged["charts/baseline_regret"], np.cumsum(np.maximum(0.0, -20.0 - returns)), rtol=1e-5)
+    assert logged["charts/baseline_regret"][-1] > 1.0  # the agent acted and did worse than the baseline
 
 
 # every make_env: each script's with envs/ and with its own gym.make (fallback, as when copied alone), and envs'
