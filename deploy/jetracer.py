@@ -195,6 +195,19 @@ class SafetyFilter:
         return self.steering, throttle
 
 
+def log_dir_problem(log_dir: str) -> Optional[str]:
+    """Why a session's logs could not be made under log_dir, or None; checked before the car is armed,
+    making nothing (a session that never armed leaves no log)."""
+    path = os.path.abspath(log_dir)
+    while not os.path.exists(path):  # the nearest part that exists: makedirs creates the rest in it
+        path = os.path.dirname(path)
+    if not os.path.isdir(path):
+        return f"{path} is not a directory"
+    if not os.access(path, os.W_OK | os.X_OK):
+        return f"{path} is not writable"
+    return None
+
+
 def claim_log_dir(log_dir: str, name: str) -> str:
     """Create log_dir/name, or name_2, _3, ... if a session started in the same second took it (simulated
     cars trained side by side): two sessions never share a directory, where TensorBoard would merge their curves."""
@@ -236,6 +249,8 @@ class CarSession:
             if self.gamepad is not None:
                 self.gamepad.require({"--estop-button": args.estop_button},
                                      {"--takeover-axis": args.takeover_axis, "--steering-axis": args.steering_axis})  # fmt: skip
+            if log_dir_problem(args.log_dir):
+                raise ValueError(f"cannot log to --log-dir {args.log_dir}: {log_dir_problem(args.log_dir)}")
         except (ValueError, OSError) as err:
             self.close()
             raise SystemExit(f"{mode}: error: {err}") from None
@@ -251,7 +266,11 @@ class CarSession:
             self.close()
             accepts = f"; it accepts {info.fields[3]}-{info.fields[4]} ms" if info is not None else "; it did not answer HELLO either"
             raise SystemExit(f"{mode}: error: the controller on {args.port} did not arm with --watchdog-ms {args.watchdog_ms}{accepts}")
-        self.writer = SummaryWriter(claim_log_dir(args.log_dir, f"{mode}__{int(time.time())}"))  # no log of a session that never armed
+        try:  # no log of a session that never armed
+            self.writer = SummaryWriter(claim_log_dir(args.log_dir, f"{mode}__{int(time.time())}"))
+        except OSError as err:  # made unwritable since it was checked
+            self.close()
+            raise SystemExit(f"{mode}: error: cannot log to --log-dir {args.log_dir}: {err}") from None
 
     def _on_signal(self, *_) -> None:
         self.stop_requested = True
@@ -597,7 +616,13 @@ def train(args: Train) -> dict:
             raise SystemExit(f"train: error: cannot write --checkpoint {args.checkpoint}: {err}") from None
 
     checkpoint(create=not args.resume)  # before the car is armed: a checkpoint that cannot be written fails now, not at the first pause
-    session = CarSession(args, "train")
+    try:
+        session = CarSession(args, "train")
+    except SystemExit:  # the car never armed (a camera, gamepad, controller or --log-dir problem)
+        if not args.resume:  # a rerun must not take this untrained state for an earlier training
+            for path in (args.checkpoint, policy_path(args.checkpoint)):
+                os.remove(path)
+        raise
     follower = LaneFollower()
     gate = jirl.Gate(hp.gate_k)
     rl_control: deque = deque(maxlen=hp.rl_control_window)

@@ -744,3 +744,48 @@ def test_a_save_writes_through_a_temporary_file_of_its_own(tmp_path):
     with pytest.raises(OSError, match="No space left"):
         jetracer.write_atomically(str(path), half_write)
     assert torch.load(path, weights_only=True)["counters"]["step"] == 3 and len(list(tmp_path.iterdir())) == 4
+
+
+@pytest.mark.parametrize("log_dir", ["afile", "afile/runs"])
+def test_a_log_dir_that_cannot_be_made_is_a_one_line_error_before_the_car_is_armed(tmp_path, log_dir):
+    (tmp_path / "afile").write_text("a user's file")
+    args = ["baseline", "--steps", "5", "--log-dir", str(tmp_path / log_dir)]
+    out = subprocess.run([sys.executable, "-m", "deploy.jetracer", *args], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert out.returncode != 0 and "Traceback" not in out.stderr, out.stderr
+    assert out.stderr.strip().splitlines()[-1] == f"baseline: error: cannot log to --log-dir {tmp_path / log_dir}: {tmp_path / 'afile'} is not a directory"
+    assert (tmp_path / "afile").read_text() == "a user's file"
+
+
+def test_a_log_dir_lost_as_the_car_arms_stops_the_car_with_one_line(tmp_path, monkeypatch):
+    controllers = []
+    real_close = jetracer.CarSession.close
+
+    def close(self):
+        controllers.append(self.link._port.controller)
+        real_close(self)
+
+    def gone(log_dir, name):
+        raise PermissionError(13, "Permission denied", log_dir)
+
+    monkeypatch.setattr(jetracer, "claim_log_dir", gone)
+    monkeypatch.setattr(jetracer.CarSession, "close", close)
+    with pytest.raises(SystemExit, match=r"^baseline: error: cannot log to --log-dir .*Permission denied"):
+        jetracer.CarSession(jetracer.Baseline(log_dir=str(tmp_path / "runs")), "baseline")
+    assert controllers[0].throttle == 0.0 and controllers[0].estop_latched  # closed: STOP, ESTOP
+
+
+def test_a_training_whose_car_never_armed_leaves_no_state_that_blocks_the_rerun(tmp_path):
+    def train(*extra):
+        return subprocess.run([sys.executable, "-m", "deploy.jetracer", "train", "--total-steps", "20", "--checkpoint", str(state),
+                               "--log-dir", str(tmp_path / "logs"), *FAST, *extra], cwd=ROOT, capture_output=True, text=True, timeout=120)  # fmt: skip
+
+    state = tmp_path / "train.pt"
+    out = train("--camera", "webcam")  # a typo: the car never arms
+    assert out.returncode != 0 and out.stderr.strip().splitlines()[-1] == "train: error: unknown camera 'webcam': use csi, usb:N, file:PATH or sim"
+    assert list(tmp_path.iterdir()) == []  # not the step-0 state a rerun would refuse as "an earlier training"
+    out = train()  # the corrected command
+    assert out.returncode == 0, out.stderr
+    assert torch.load(state, weights_only=True)["counters"]["step"] == 20
+    out = train("--resume", "--camera", "webcam")  # a resumed training keeps its state
+    assert out.returncode != 0 and "unknown camera 'webcam'" in out.stderr
+    assert torch.load(state, weights_only=True)["counters"]["step"] == 20 and Path(jetracer.policy_path(str(state))).exists()
