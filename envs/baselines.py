@@ -14,6 +14,7 @@ import argparse
 import importlib
 from typing import Callable, Optional
 
+import gymnasium as gym
 import numpy as np
 
 from envs.lane_follower import LaneFollower
@@ -86,6 +87,8 @@ def rollout(env, policy: Baseline, seed: int) -> np.ndarray:
             values = np.array([np.nan])
         if values.size != np.prod(env.action_space.shape) or not np.all(np.isfinite(values)):
             raise ValueError(f"the baseline returned {action!r}; expected {int(np.prod(env.action_space.shape))} finite number(s) in env units")
+        if isinstance(env.action_space, gym.spaces.Box):  # clipped to the bounds, as the scripts apply it
+            action = np.clip(np.asarray(action).reshape(env.action_space.shape), env.action_space.low, env.action_space.high)
         obs, reward, terminated, truncated, _ = env.step(action)
         rewards.append(float(reward))
         if terminated or truncated:

@@ -295,3 +295,14 @@ def test_an_evaluation_episode_that_never_ends_is_an_error_not_a_hang(script, tm
     with pytest.raises(ValueError, match=r"^evaluation episode 0 did not end within 200 steps; give the env a time limit \(max_episode_steps\)$"):
         module.evaluate(path, "EndlessPendulum-v0", 2, 1)
     assert module.evaluate(path, "Pendulum-v1", 1, 1)[0] < 0  # an episode as long as the limit is fine
+
+
+def test_envs_baselines_measures_a_baseline_as_the_scripts_apply_it(tmp_path, monkeypatch):
+    from envs import rollout
+
+    (tmp_path / "unclipped_env.py").write_text(UNCLIPPED_ENV)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import unclipped_env
+
+    assert rollout(gym.make("unclipped_env:Unclipped-v0"), unclipped_env.saturating, seed=0).tolist() == [-1.0] * 20
+    assert rollout(gym.make("CartPole-v1"), lambda obs: 1, seed=0).sum() > 0  # a Discrete space takes the action as given
