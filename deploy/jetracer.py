@@ -249,8 +249,9 @@ class CarSession:
             if self.gamepad is not None:
                 self.gamepad.require({"--estop-button": args.estop_button},
                                      {"--takeover-axis": args.takeover_axis, "--steering-axis": args.steering_axis})  # fmt: skip
-            if log_dir_problem(args.log_dir):
-                raise ValueError(f"cannot log to --log-dir {args.log_dir}: {log_dir_problem(args.log_dir)}")
+            problem = log_dir_problem(args.log_dir)
+            if problem:
+                raise ValueError(f"cannot log to --log-dir {args.log_dir}: {problem}")
         except (ValueError, OSError) as err:
             self.close()
             raise SystemExit(f"{mode}: error: {err}") from None
