@@ -211,7 +211,7 @@ def log_dir_problem(log_dir: str) -> Optional[str]:
 def claim_log_dir(log_dir: str, name: str) -> str:
     """Create log_dir/name, or name_2, _3, ... if a session started in the same second took it (simulated
     cars trained side by side): two sessions never share a directory, where TensorBoard would merge their curves."""
-    os.makedirs(log_dir, exist_ok=True)
+    os.makedirs(log_dir or os.curdir, exist_ok=True)  # "" is the current directory, as in os.path.join
     path, n = os.path.join(log_dir, name), 1
     while True:
         try:

@@ -703,6 +703,8 @@ def test_sessions_started_in_the_same_second_log_to_directories_of_their_own(tmp
         session.close()
     assert [Path(d).name for d in log_dirs] == ["train__1800000000", "train__1800000000_2", "train__1800000000_3"]
     assert sorted(p.name for p in (tmp_path / "logs").iterdir()) == sorted(Path(d).name for d in log_dirs)
+    monkeypatch.chdir(tmp_path)
+    assert jetracer.claim_log_dir("", "train__1") == "train__1" and (tmp_path / "train__1").is_dir()  # "": the current directory
 
 
 def test_a_fresh_run_never_overwrites_the_checkpoint_another_run_created_as_it_started(tmp_path, monkeypatch):
