@@ -502,11 +502,22 @@ def test_train_checks_its_checkpoint_before_the_car_is_armed(tmp_path):
     assert earlier.read_bytes() == b"45 minutes of training" and not (tmp_path / "logs").exists()
 
 
+def record_closed_controllers(monkeypatch) -> list:
+    """The mock controller of every session closed from now on, in order (to check it was stopped)."""
+    controllers, real_close = [], jetracer.CarSession.close
+
+    def close(self):
+        controllers.append(self.link._port.controller)
+        real_close(self)
+
+    monkeypatch.setattr(jetracer.CarSession, "close", close)
+    return controllers
+
+
 def test_a_checkpoint_that_cannot_be_written_mid_run_stops_the_car(tmp_path, monkeypatch):
     import errno
 
     saves, real_save = [], jetracer.save_training_state
-    controllers = []
 
     def save(path, sac, rb, counters, args, create=False):
         saves.append(counters["step"])
@@ -514,14 +525,8 @@ def test_a_checkpoint_that_cannot_be_written_mid_run_stops_the_car(tmp_path, mon
             raise OSError(errno.ENOSPC, "No space left on device")
         real_save(path, sac, rb, counters, args, create)
 
-    real_close = jetracer.CarSession.close
-
-    def close(self):
-        controllers.append(self.link._port.controller)
-        real_close(self)
-
     monkeypatch.setattr(jetracer, "save_training_state", save)
-    monkeypatch.setattr(jetracer.CarSession, "close", close)
+    controllers = record_closed_controllers(monkeypatch)
     with pytest.raises(SystemExit, match="train: error: cannot write --checkpoint .*No space left on device"):
         jetracer.main(["train", "--total-steps", "500", "--train-every", "40", "--gradient-steps", "2",
                        "--checkpoint", str(tmp_path / "t.pt"), "--log-dir", str(tmp_path), *FAST])  # fmt: skip
@@ -759,18 +764,11 @@ def test_a_log_dir_that_cannot_be_made_is_a_one_line_error_before_the_car_is_arm
 
 
 def test_a_log_dir_lost_as_the_car_arms_stops_the_car_with_one_line(tmp_path, monkeypatch):
-    controllers = []
-    real_close = jetracer.CarSession.close
-
-    def close(self):
-        controllers.append(self.link._port.controller)
-        real_close(self)
-
     def gone(log_dir, name):
         raise PermissionError(13, "Permission denied", log_dir)
 
     monkeypatch.setattr(jetracer, "claim_log_dir", gone)
-    monkeypatch.setattr(jetracer.CarSession, "close", close)
+    controllers = record_closed_controllers(monkeypatch)
     with pytest.raises(SystemExit, match=r"^baseline: error: cannot log to --log-dir .*Permission denied"):
         jetracer.CarSession(jetracer.Baseline(log_dir=str(tmp_path / "runs")), "baseline")
     assert controllers[0].throttle == 0.0 and controllers[0].estop_latched  # closed: STOP, ESTOP
