@@ -5,12 +5,13 @@ The send loop sends the latest DRIVE command only while it is fresh (younger tha
 the controller's watchdog fed with neutral outputs. A lost port is reopened with exponential
 back-off, and a reopened link is never re-armed by itself: arming is always the caller's decision.
 `close()` sends STOP, then ESTOP. Works with any `serial.serial_for_url` URL (a device path,
-`mockjetracer://`, `spy://...`). Runs on Python 3.8.
+`mockjetracer://`, `spy://...`); a device is opened exclusively. Runs on Python 3.8.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import statistics
 import threading
 import time
@@ -48,7 +49,9 @@ def _open_url(url: str, timeout: float):
     from deploy.mock_controller import register_url_scheme
 
     register_url_scheme()
-    return serial.serial_for_url(url, baudrate=115200, timeout=timeout)
+    # exclusive (a flock on POSIX): a second host on the same car, a `run` left open in another
+    # terminal, is refused when it opens the port instead of interleaving its commands and stealing replies
+    return serial.serial_for_url(url, baudrate=115200, timeout=timeout, exclusive=True if os.name == "posix" else None)
 
 
 class HostLink:

@@ -1,5 +1,7 @@
 """deploy/: the serial protocol, the mock firmware's state machine, and the host link over mock ports and a pty."""
 
+import subprocess
+import sys
 import time
 
 import pytest
@@ -7,6 +9,7 @@ import serial
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from conftest import ROOT
 from deploy import protocol as p
 from deploy.link import HostLink
 from deploy.mock_controller import MockController, PtyController, register_url_scheme
@@ -348,3 +351,25 @@ def test_spy_url_wraps_a_real_port(tmp_path):
     pty.close()
     assert reply and reply[0].type == p.INFO
     assert "TX" in log.read_text()
+
+
+def test_a_second_host_cannot_open_the_port_a_link_holds(tmp_path):
+    pty = PtyController()
+    link = HostLink(pty.path, send_hz=100, command_timeout=0.05).start()
+    try:
+        with pytest.raises(OSError, match=f"Could not exclusively lock port {pty.path}"):
+            HostLink(pty.path, send_hz=100, command_timeout=0.05).start()
+        # nor can the CLI: one line, before anything is armed or logged
+        out = subprocess.run([sys.executable, "-m", "deploy.jetracer", "baseline", "--steps", "5", "--port", pty.path, "--log-dir", str(tmp_path / "runs")],
+                             cwd=ROOT, capture_output=True, text=True, timeout=60)  # fmt: skip
+        assert out.returncode != 0 and "Traceback" not in out.stderr, out.stderr
+        assert out.stderr.strip().splitlines()[-1].startswith(f"baseline: error: cannot open the motor controller: [Errno 11] Could not exclusively lock port {pty.path}")
+        assert not (tmp_path / "runs").exists()
+        assert link.arm()  # the first host still has the car, alone
+        link.drive(0.2, 0.5)
+        assert wait_until(lambda: pty.controller.throttle == 0.5)
+    finally:
+        link.close()
+    second = HostLink(pty.path, send_hz=100, command_timeout=0.05).start()  # free once the first has closed it
+    second.close()
+    pty.unplug()
