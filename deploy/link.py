@@ -11,7 +11,6 @@ back-off, and a reopened link is never re-armed by itself: arming is always the 
 from __future__ import annotations
 
 import math
-import os
 import statistics
 import threading
 import time
@@ -49,9 +48,9 @@ def _open_url(url: str, timeout: float):
     from deploy.mock_controller import register_url_scheme
 
     register_url_scheme()
-    # exclusive (a flock on POSIX): a second host on the same car, a `run` left open in another
-    # terminal, is refused when it opens the port instead of interleaving its commands and stealing replies
-    return serial.serial_for_url(url, baudrate=115200, timeout=timeout, exclusive=True if os.name == "posix" else None)
+    # exclusive (a flock on POSIX; Windows ports always are): a second host on the same car, a `run` left
+    # open in another terminal, is refused when it opens the port instead of interleaving its commands and stealing replies
+    return serial.serial_for_url(url, baudrate=115200, timeout=timeout, exclusive=True)
 
 
 class HostLink:
