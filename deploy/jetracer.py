@@ -145,7 +145,7 @@ class Train(Common):
     """Train a policy on the car with JIRL: the gate hands control between the baseline and the agent."""
 
     total_steps: int = 54_000
-    """control steps of training (54k = 45 minutes at 20 Hz, the paper's budget)"""
+    """control steps of training, counted from its start when resumed (54k = 45 minutes at 20 Hz, the paper's budget)"""
     train_every: int = 400
     """pause every this many steps: STOP, train, checkpoint, resume (the paper: 400)"""
     gradient_steps: int = 200
@@ -604,6 +604,9 @@ def train(args: Train) -> dict:
             counters = load_training_state(args.checkpoint, sac, rb)
         except (ValueError, FileNotFoundError) as err:
             raise SystemExit(f"train: error: {err}")
+        if counters["step"] >= args.total_steps:  # the car would be armed to drive no step
+            raise SystemExit(f"train: error: {args.checkpoint} is at step {counters['step']}, and --total-steps {args.total_steps}"
+                             " counts from the start of the training: pass more to continue it")
         print(f"resumed at step {counters['step']} with {rb.size} transitions")
     elif os.path.exists(args.checkpoint):  # a fresh run would overwrite it at its first pause
         raise SystemExit(f"train: error: {args.checkpoint} holds an earlier training; pass --resume to continue it, or another --checkpoint")

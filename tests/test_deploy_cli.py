@@ -80,6 +80,12 @@ def test_train_writes_a_checkpoint_and_resumes_from_it(tmp_path):
     assert "resumed at step 100" in out.stdout
     resumed = torch.load(state, weights_only=True)
     assert resumed["counters"]["step"] == 140 and len(resumed["buffer"]["obs"]) > size
+    written = state.read_bytes()
+    out = subprocess.run([sys.executable, "-m", "deploy.jetracer", "train", "--total-steps", "140", "--resume", *common],
+                         cwd=ROOT, capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert out.returncode != 0 and out.stderr.strip().splitlines()[-1] == (
+        f"train: error: {state} is at step 140, and --total-steps 140 counts from the start of the training: pass more to continue it")
+    assert state.read_bytes() == written and len(list(tmp_path.glob("train__*"))) == 2  # not armed: no third session logged
     (tmp_path / "broken.pt").write_bytes(b"not a checkpoint")
     out = subprocess.run([sys.executable, "-m", "deploy.jetracer", "train", "--resume", "--checkpoint", str(tmp_path / "broken.pt")],
                          cwd=ROOT, capture_output=True, text=True, timeout=60)  # fmt: skip
@@ -775,8 +781,8 @@ def test_a_log_dir_lost_as_the_car_arms_stops_the_car_with_one_line(tmp_path, mo
 
 
 def test_a_training_whose_car_never_armed_leaves_no_state_that_blocks_the_rerun(tmp_path):
-    def train(*extra):
-        return subprocess.run([sys.executable, "-m", "deploy.jetracer", "train", "--total-steps", "20", "--checkpoint", str(state),
+    def train(*extra, steps=20):
+        return subprocess.run([sys.executable, "-m", "deploy.jetracer", "train", "--total-steps", str(steps), "--checkpoint", str(state),
                                "--log-dir", str(tmp_path / "logs"), *FAST, *extra], cwd=ROOT, capture_output=True, text=True, timeout=120)  # fmt: skip
 
     state = tmp_path / "train.pt"
@@ -786,6 +792,6 @@ def test_a_training_whose_car_never_armed_leaves_no_state_that_blocks_the_rerun(
     out = train()  # the corrected command
     assert out.returncode == 0, out.stderr
     assert torch.load(state, weights_only=True)["counters"]["step"] == 20
-    out = train("--resume", "--camera", "webcam")  # a resumed training keeps its state
+    out = train("--resume", "--camera", "webcam", steps=40)  # a resumed training keeps its state
     assert out.returncode != 0 and "unknown camera 'webcam'" in out.stderr
     assert torch.load(state, weights_only=True)["counters"]["step"] == 20 and Path(jetracer.policy_path(str(state))).exists()
