@@ -306,3 +306,44 @@ def test_envs_baselines_measures_a_baseline_as_the_scripts_apply_it(tmp_path, mo
 
     assert rollout(gym.make("unclipped_env:Unclipped-v0"), unclipped_env.saturating, seed=0).tolist() == [-1.0] * 20
     assert rollout(gym.make("CartPole-v1"), lambda obs: 1, seed=0).sum() > 0  # a Discrete space takes the action as given
+
+
+DRIFT_ENV = """
+import gymnasium as gym
+import numpy as np
+
+
+class Drift(gym.Env):
+    '''The state is the sum of the actions applied so far, unclipped by the env; reward -|state|, 10 steps.'''
+
+    def __init__(self):
+        self.observation_space = gym.spaces.Box(-100.0, 100.0, (1,), np.float32)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.x = 0.0
+        return np.array([self.x], np.float32), {}
+
+    def step(self, action):
+        self.x += float(action[0])
+        return np.array([self.x], np.float32), -abs(self.x), False, False, {}
+
+
+gym.register("Drift-v0", entry_point=Drift, max_episode_steps=10)
+
+
+def saturating(obs):  # asks for 3 a step: the clipped baseline drifts by 1
+    return np.array([3.0])
+"""
+
+
+@pytest.mark.parametrize("script", ["ppo_il", "trpo_il"])
+def test_imitation_visits_the_states_of_the_clipped_baseline_it_is_labelled_with(script, tmp_path, monkeypatch):
+    (tmp_path / "drift_env.py").write_text(DRIFT_ENV)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import drift_env
+
+    data = load_script(script).collect_baseline_data(gym.make("drift_env:Drift-v0"), drift_env.saturating, steps=10, seed=0, gamma=0.99)
+    assert data["obs"][:, 0].tolist() == list(range(10))  # 0, 1, 2, ...: not 0, 3, 6, ... of the action as asked
+    assert data["actions"][:, 0].tolist() == [1.0] * 10 and data["episode_returns"] == [-55.0]
