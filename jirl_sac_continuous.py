@@ -662,6 +662,11 @@ def load_checkpoint(path: str) -> dict:
         cause = (str(err).strip().splitlines() or ["the file ends early"])[0].split(". ")[0]
         raise ValueError(f"{path} is not a readable checkpoint ({type(err).__name__}: {cause})") from None
     if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
+        found = checkpoint.get("format") if isinstance(checkpoint, dict) else None
+        if isinstance(found, str) and found.startswith("jirl-"):  # another script's or version's: name it and its run
+            run = checkpoint["args"].get("exp_name") if isinstance(checkpoint.get("args"), dict) else None
+            origin = f" (from a {run} run)" if isinstance(run, str) else ""
+            raise ValueError(f"{path} is a {found} file{origin}, not a {CHECKPOINT_FORMAT} checkpoint")
         raise ValueError(f"{path} is not a {CHECKPOINT_FORMAT} checkpoint")
     missing = [key for key in CHECKPOINT_KEYS if key not in checkpoint]
     if missing:

@@ -68,7 +68,7 @@ def test_train_writes_a_checkpoint_and_resumes_from_it(tmp_path):
     out = subprocess.run([sys.executable, "-m", "deploy.jetracer", *args], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert state.exists() and (tmp_path / "train.pt.actor.cleanrl_model").exists()
-    with pytest.raises(SystemExit, match=f"not a jirl-sac-checkpoint-v2 checkpoint; `train` keeps the policy of this training in {state}.actor.cleanrl_model$"):
+    with pytest.raises(SystemExit, match=f"is a jirl-car-training-v2 file, not a jirl-sac-checkpoint-v2 checkpoint; `train` keeps the policy of this training in {state}.actor.cleanrl_model$"):
         jetracer.run(jetracer.Run(checkpoint=str(state), steps=1, log_dir=str(tmp_path)))  # the training state, not the policy
     saved = torch.load(state, weights_only=True)
     assert saved["counters"]["step"] == 100 and saved["counters"]["updates"] == 10

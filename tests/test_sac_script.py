@@ -115,6 +115,25 @@ def test_checkpoint_round_trip_and_errors(tmp_path, sac):
     assert path.exists() and corrupt.exists(), "a failed load deletes nothing"
 
 
+@pytest.mark.parametrize("loader", ["sac_continuous", "jirl_sac_continuous", "ppo_il", "trpo_il"])
+def test_another_scripts_checkpoint_is_named_with_its_format_and_run(tmp_path, loader):
+    script = load_script(loader)
+    others = {"jirl-sac-checkpoint-v2": "jirl_sac_continuous", "jirl-gaussian-checkpoint-v1": "trpo_il", "jirl-car-training-v2": None}
+    for found, run in others.items():
+        if found == script.CHECKPOINT_FORMAT:
+            continue
+        path = tmp_path / f"{found}.pt"
+        torch.save({"format": found, **({"args": {"exp_name": run}} if run else {})}, path)
+        origin = f" (from a {run} run)" if run else ""
+        with pytest.raises(ValueError) as raised:
+            script.load_checkpoint(str(path))
+        assert str(raised.value) == f"{path} is a {found} file{origin}, not a {script.CHECKPOINT_FORMAT} checkpoint"
+    foreign = tmp_path / "foreign.pt"  # a format of no script here keeps the plain message
+    torch.save({"format": "sb3-policy"}, foreign)
+    with pytest.raises(ValueError, match=f"^{foreign} is not a {script.CHECKPOINT_FORMAT} checkpoint$"):
+        script.load_checkpoint(str(foreign))
+
+
 @pytest.mark.parametrize("loader", ["sac_continuous", "jirl_sac_continuous", "ppo_il", "trpo_il", "walker2d", "deploy"])
 def test_a_damaged_file_is_a_one_line_error_that_never_advises_weights_only_false(tmp_path, loader):
     if loader == "walker2d":
