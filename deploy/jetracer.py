@@ -17,6 +17,7 @@ Runs on the car's Python 3.8 (JetPack 5) and newer.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 import os
@@ -27,7 +28,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Callable, List, Literal, Optional, Tuple
+from typing import Callable, Iterator, List, Literal, Optional, Tuple
 
 import numpy as np
 
@@ -544,6 +545,11 @@ def policy_path(state_path: str) -> str:
     return f"{state_path}.actor.cleanrl_model"
 
 
+def lock_path(state_path: str) -> str:
+    """The file a training holds locked while it uses the training state at state_path."""
+    return f"{state_path}.lock"
+
+
 def load_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuffer) -> dict:
     import torch
 
@@ -583,10 +589,39 @@ def load_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
     return state["counters"]
 
 
+@contextlib.contextmanager
+def holding(checkpoint: str) -> Iterator[None]:
+    """Hold {checkpoint}.lock while a training runs: two trainings resumed from one --checkpoint (two cars,
+    or simulated ones) would each save over the other's steps. The lock goes with the process."""
+    lock = lock_path(checkpoint)
+    try:
+        os.makedirs(os.path.dirname(os.path.abspath(checkpoint)), exist_ok=True)
+        fd = os.open(lock, os.O_CREAT | os.O_RDWR)
+    except OSError as err:
+        raise SystemExit(f"train: error: cannot write --checkpoint {checkpoint}: {err}") from None
+    try:
+        try:
+            if sys.platform == "win32":
+                import msvcrt
+
+                msvcrt.locking(fd, msvcrt.LK_NBLCK, 1)
+            else:
+                import fcntl
+
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise SystemExit(f"train: error: another training is using --checkpoint {checkpoint} (it holds {lock});"
+                             " wait for it to end, or pass another --checkpoint") from None
+        yield
+    finally:
+        if not os.path.exists(checkpoint):  # no state came of it (a typo, a car that never armed): leave no lock file either
+            with contextlib.suppress(OSError):  # Windows keeps an open file
+                os.remove(lock)
+        os.close(fd)  # releases the lock; beside a state the empty file stays (removed, two later runs could each lock a file of their own)
+
+
 def train(args: Train) -> dict:
     """The on-car JIRL loop (Alg. 1-3), pause-and-train or with a background learner; returns the final counters."""
-    import torch
-
     hp = args.jirl
     if hp.guidance_schedule not in ("geometric", "linear"):
         raise SystemExit("train: error: --jirl.guidance-schedule must be geometric or linear on the car (guidance by time)")
@@ -594,6 +629,15 @@ def train(args: Train) -> dict:
     unused = [f"--jirl.{name.replace('_', '-')} ({hint})" for name, hint in CAR_IGNORES.items() if getattr(hp, name) != getattr(defaults, name)]
     if unused:
         raise SystemExit(f"train: error: no effect on the car: {'; '.join(unused)}")
+    with holding(args.checkpoint):
+        return train_holding(args)
+
+
+def train_holding(args: Train) -> dict:
+    """train(), its options checked and --checkpoint held by this process."""
+    import torch
+
+    hp = args.jirl
     torch.manual_seed(args.seed)
     torch.set_num_threads(hp.torch_threads)
     sac = jirl.SoftActorCritic(OBS_SIZE, 2, hp)

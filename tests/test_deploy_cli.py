@@ -729,7 +729,32 @@ def test_a_fresh_run_never_overwrites_the_checkpoint_another_run_created_as_it_s
     with pytest.raises(SystemExit, match=f"^train: error: another run created {re.escape(str(path))} as this one started; pass another --checkpoint$"):
         jetracer.train(jetracer.Train(jirl=hp, checkpoint=str(path), total_steps=50, log_dir=str(tmp_path / "logs")))
     assert path.read_bytes() == b"the other run's first save"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["train.pt"]  # no temporary file left, the car never armed: no logs
+    # no temporary file left, the car never armed: no logs (the lock file goes with the state this test hides)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["train.pt"]
+
+
+def test_a_training_in_progress_holds_its_checkpoint_against_a_second_one(tmp_path):
+    state = tmp_path / "train.pt"
+
+    def train(*extra, steps):
+        return subprocess.run([sys.executable, "-m", "deploy.jetracer", "train", "--total-steps", str(steps), "--checkpoint", str(state),
+                               "--log-dir", str(tmp_path / "logs"), *FAST, *extra], cwd=ROOT, capture_output=True, text=True, timeout=120)  # fmt: skip
+
+    assert train(steps=20).returncode == 0
+    saved = state.read_bytes()
+    with jetracer.holding(str(state)):  # as a training resumed from it on another car holds it
+        for extra in (["--resume"], []):
+            out = train(*extra, steps=40)
+            assert out.returncode != 0 and "Traceback" not in out.stderr, out.stderr
+            assert out.stderr.strip().splitlines()[-1] == (f"train: error: another training is using --checkpoint {state} (it holds {state}.lock);"
+                                                           " wait for it to end, or pass another --checkpoint")  # fmt: skip
+        with pytest.raises(SystemExit, match="another training is using"):  # a second holder in this process too
+            with jetracer.holding(str(state)):
+                pass
+    assert state.read_bytes() == saved and len(list((tmp_path / "logs").iterdir())) == 1  # the car never armed for the refused ones
+    out = train("--resume", steps=40)  # released: the training goes on
+    assert out.returncode == 0, out.stderr
+    assert torch.load(state, weights_only=True)["counters"]["step"] == 40
 
 
 def test_a_save_writes_through_a_temporary_file_of_its_own(tmp_path):
@@ -786,6 +811,8 @@ def test_a_training_whose_car_never_armed_leaves_no_state_that_blocks_the_rerun(
                                "--log-dir", str(tmp_path / "logs"), *FAST, *extra], cwd=ROOT, capture_output=True, text=True, timeout=120)  # fmt: skip
 
     state = tmp_path / "train.pt"
+    out = train("--resume")  # nothing to resume yet
+    assert out.returncode != 0 and "No such file or directory" in out.stderr and list(tmp_path.iterdir()) == []  # not even a lock file
     out = train("--camera", "webcam")  # a typo: the car never arms
     assert out.returncode != 0 and out.stderr.strip().splitlines()[-1] == "train: error: unknown camera 'webcam': use csi, usb:N, file:PATH or sim"
     assert list(tmp_path.iterdir()) == []  # not the step-0 state a rerun would refuse as "an earlier training"
