@@ -203,11 +203,14 @@ def load_baseline(spec: str, env_id: str) -> Optional[Callable]:
         module_name, sep, attribute = spec.partition(":")
         if not (module_name and sep and attribute) or module_name.startswith(".") or sep in attribute:
             raise ValueError(f"baseline {spec!r} must look like 'module:function' (an absolute module name, one colon)")
-        try:
+        try:  # a ValueError the user's module raises is named with the baseline too
             baseline = getattr(importlib.import_module(module_name), attribute)
-        except (ImportError, AttributeError) as err:
+        except (ImportError, AttributeError, ValueError) as err:
             raise ValueError(f"cannot load baseline {spec!r}: {err}") from None
-        baseline = baseline() if isinstance(baseline, type) else baseline
+        try:
+            baseline = baseline() if isinstance(baseline, type) else baseline
+        except ValueError as err:  # a class refusing its settings; any other error keeps its traceback
+            raise ValueError(f"cannot load baseline {spec!r}: {err}") from None
         if not callable(baseline):
             raise ValueError(f"baseline {spec!r} is a {type(baseline).__name__}, not a function or class")
         return baseline

@@ -58,6 +58,23 @@ def test_a_baseline_that_is_not_callable_is_refused_when_loaded(script, tmp_path
     assert np.isnan(module.load_baseline("user_baselines:nan", "Pendulum-v1")(np.zeros(3))[0])  # loads; fails when used
 
 
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_baseline_that_refuses_its_settings_is_named_and_a_bug_in_it_keeps_its_traceback(script, tmp_path, monkeypatch):
+    (tmp_path / "refusing_module.py").write_text('raise ValueError("set BASELINE_GAIN first")\n')
+    (tmp_path / "user_controllers.py").write_text(
+        "class Refusing:\n    def __init__(self):\n        raise ValueError('gain must be positive')\n\n"
+        "class Buggy:\n    def __init__(self):\n        self.gain = self.gian\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    load = load_script(script).load_baseline
+    with pytest.raises(ValueError, match=r"^cannot load baseline 'refusing_module:act': set BASELINE_GAIN first$"):
+        load("refusing_module:act", "Pendulum-v1")
+    with pytest.raises(ValueError, match=r"^cannot load baseline 'user_controllers:Refusing': gain must be positive$"):
+        load("user_controllers:Refusing", "Pendulum-v1")
+    with pytest.raises(AttributeError, match="gian"):  # the user's own bug: not dressed up as a bad --baseline
+        load("user_controllers:Buggy", "Pendulum-v1")
+
+
 @pytest.mark.parametrize(
     "script, baseline, message",
     [
