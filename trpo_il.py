@@ -181,6 +181,8 @@ def make_env(env_id: str, seed: int, capture_video: bool = False, run_name: str 
             raise ValueError(f"env id {env_id!r} needs a module that does not import: {err}") from None
         except gym.error.Error as err:
             raise ValueError(f"unknown env id {env_id!r}: {err}") from None
+        except ValueError as err:  # the env refusing its settings: say which env
+            raise ValueError(f"cannot make env {env_id!r}: {err}") from None
         env.action_space.seed(seed)
     if not isinstance(env.action_space, gym.spaces.Box) or len(env.action_space.shape) != 1:
         raise ValueError(f"{env_id} has a {env.action_space} action space; this script needs a flat continuous (Box) one")

@@ -46,6 +46,8 @@ def make_env(env_id: str, seed: int | None = None, render_mode: str | None = Non
         raise ValueError(f"env id {env_id!r} needs a module that does not import: {err}") from None
     except gym.error.Error as err:
         raise ValueError(f"unknown env id {env_id!r}: {err}") from None
+    except ValueError as err:  # the env refusing its settings: say which env
+        raise ValueError(f"cannot make env {env_id!r}: {err}") from None
     if seed is not None:
         env.action_space.seed(seed)
     return env

@@ -244,6 +244,19 @@ def test_an_env_id_whose_module_does_not_import_is_a_one_line_error(script, fall
         make_env("no_such_module:Env-v0", 0)
 
 
+@pytest.mark.parametrize("script, fallback", EVERY_MAKE_ENV)
+def test_an_env_that_refuses_its_settings_is_named(script, fallback, tmp_path, monkeypatch):
+    (tmp_path / "refusing_env.py").write_text(
+        "import gymnasium as gym\n\nclass Refusing(gym.Env):\n    def __init__(self, **kwargs):\n"
+        "        raise ValueError('track file missing')\n\ngym.register('Refusing-v0', entry_point='refusing_env:Refusing')\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    make_env = make_env_of(script, fallback, monkeypatch)
+    with pytest.raises(ValueError) as raised:  # before, the bare "track file missing": which part of the run said it?
+        make_env("refusing_env:Refusing-v0", 0)
+    assert str(raised.value) == "cannot make env 'refusing_env:Refusing-v0': track file missing"
+
+
 # gym.make and importlib fail on these with "Empty module name", "too many values to unpack" or a TypeError traceback
 MALFORMED = [":Env-v0", ".relative:Env-v0", "..x:Env-v0", "a:b:c", "x:"]
 
