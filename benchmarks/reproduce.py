@@ -18,9 +18,11 @@ Launchers: a local pool of processes (one per core, with progress and ETA), or S
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import shlex
+import shutil
 import subprocess
 import sys
 import time
@@ -28,7 +30,7 @@ import warnings
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Iterator, Literal, Optional
 
 import numpy as np
 
@@ -131,10 +133,35 @@ def done_arguments(folder: Path) -> Optional[list[str]]:
     return shlex.split(marker.read_text())[2:] if marker.exists() else None
 
 
+def fresh(folder: Path) -> Path:
+    """folder, made, without the logs of an earlier attempt that did not finish (killed with the session,
+    Ctrl-C, failed): beside the new run's, they would leave two runs to read in one folder."""
+    folder.mkdir(parents=True, exist_ok=True)
+    shutil.rmtree(folder / "runs", ignore_errors=True)
+    return folder
+
+
+@contextlib.contextmanager
+def holding(workdir: Path) -> Iterator[None]:
+    """Hold {workdir}/.lock while runs train: a second reproduce.py on the same --workdir would train the
+    same runs in the same folders, each clearing the other's. The lock goes with the process."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    with open(workdir / ".lock", "w") as lock:
+        try:
+            import fcntl
+        except ImportError:  # not POSIX: no lock
+            yield
+            return
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise SystemExit(f"reproduce: error: another reproduce.py is training in {workdir}; wait for it to end, or use another --workdir") from None
+        yield
+
+
 def run_one(cmd: list[str], folder: str) -> int:
     """Train one run in `folder`, its output in log.txt; write DONE on success. Returns the exit code."""
-    path = Path(folder)
-    path.mkdir(parents=True, exist_ok=True)
+    path = fresh(Path(folder))
     with open(path / "log.txt", "w") as log:
         code = subprocess.run(cmd, cwd=path, stdout=log, stderr=subprocess.STDOUT).returncode
     if code == 0:
@@ -149,6 +176,11 @@ def report_failures(failed: list[str], total: int) -> None:
 
 
 def launch(args: Args) -> None:
+    with holding(Path(args.workdir)):
+        launch_holding(args)
+
+
+def launch_holding(args: Args) -> None:
     workdir, preset = Path(args.workdir), PRESETS[args.preset]
     jobs = [(command(preset, env, method, seed, args.steps), str(run_dir(workdir, env, method, seed)))
             for env in args.envs for method in args.methods for seed in args.seeds]  # fmt: skip
@@ -184,7 +216,7 @@ def launch(args: Args) -> None:
         executor.update_parameters(timeout_min=args.slurm_timeout_min)
     submitted = []
     for cmd, folder in todo:
-        Path(folder).mkdir(parents=True, exist_ok=True)
+        fresh(Path(folder))
         # CommandFunction is importable by the workers; a function of this script would not be
         submitted.append((executor.submit(submitit.helpers.CommandFunction(cmd, cwd=folder)), cmd, folder))
     failed = []
@@ -205,7 +237,10 @@ def launch(args: Args) -> None:
 def read_scalars(folder: Path) -> dict[str, list[tuple[int, float]]]:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    (events_dir,) = {p.parent for p in (folder / "runs").glob("*/events.out.tfevents.*")}
+    logs = sorted((folder / "runs").glob("*/events.out.tfevents.*"), key=lambda p: p.stat().st_mtime)
+    if not logs:
+        raise SystemExit(f"reproduce: error: {folder} is marked DONE but holds no TensorBoard log; delete its DONE to train it again")
+    events_dir = logs[-1].parent  # a workdir from before fresh() may hold a killed attempt's logs too: the finished run wrote last
     accumulator = EventAccumulator(str(events_dir), size_guidance={"scalars": 0})
     accumulator.Reload()
     return {tag: [(e.step, e.value) for e in accumulator.Scalars(tag)] for tag in accumulator.Tags()["scalars"]}

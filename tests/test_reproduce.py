@@ -2,6 +2,7 @@
 
 import math
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -183,3 +184,56 @@ def test_arguments_out_of_range_are_refused():
     for bad in (dict(workers=0), dict(steps=0), dict(seeds=()), dict(seeds=(1, -1))):
         with pytest.raises(ValueError, match=f"--{next(iter(bad))} must be"):
             reproduce.Args(**bad)
+
+
+WRITE_ONE_LOG = """
+import sys, time
+from torch.utils.tensorboard import SummaryWriter
+writer = SummaryWriter(f"runs/attempt_{time.time_ns()}")  # as a script names its run: a new directory each attempt
+writer.add_scalar("charts/baseline_regret", float(sys.argv[1]), 1)
+writer.close()
+"""
+
+
+@pytest.mark.parametrize("launcher", ["local", "submitit-local"])
+def test_a_run_killed_earlier_is_trained_again_from_scratch_and_reported_once(tmp_path, monkeypatch, launcher):
+    script = tmp_path / "train.py"
+    script.write_text(WRITE_ONE_LOG)
+    monkeypatch.setattr(reproduce, "command", lambda preset, env, method, seed, steps=None: [sys.executable, str(script), "7"])
+    folder = reproduce.run_dir(tmp_path / "work", "Pendulum-v1", "sac", 1)
+    killed = SummaryWriter(str(folder / "runs" / "attempt_0"))  # the logs of an attempt killed with the session: no DONE
+    killed.add_scalar("charts/baseline_regret", 99.0, 1)
+    killed.close()
+    args = reproduce.Args(envs=("Pendulum-v1",), methods=("sac",), seeds=(1,), preset="quick", launcher=launcher, workdir=str(tmp_path / "work"))
+    reproduce.launch(args)  # before, the folder then held two runs and the report ended in "too many values to unpack"
+    assert (folder / "DONE").exists() and [p.name for p in (folder / "runs").iterdir()] != ["attempt_0"]
+    assert len(list((folder / "runs").iterdir())) == 1
+    results = reproduce.collect(tmp_path / "work", ["Pendulum-v1"], ["sac"], [1])
+    assert reproduce.last(results["Pendulum-v1"]["sac"][1], "charts/baseline_regret") == 7.0
+
+
+def test_a_workdir_from_before_reports_the_attempt_that_finished(tmp_path):
+    folder = reproduce.run_dir(tmp_path, "Pendulum-v1", "sac", 1)
+    for name, value in (("killed", 99.0), ("finished", 7.0)):  # in the order they ran
+        writer = SummaryWriter(str(folder / "runs" / name))
+        writer.add_scalar("charts/baseline_regret", value, 1)
+        writer.close()
+        time.sleep(0.05)
+    (folder / "DONE").write_text("synthetic\n")
+    assert reproduce.last(reproduce.read_scalars(folder), "charts/baseline_regret") == 7.0
+    (folder / "runs" / "finished").rename(folder / "elsewhere")
+    (folder / "runs" / "killed").rename(folder / "elsewhere_too")
+    with pytest.raises(SystemExit, match="is marked DONE but holds no TensorBoard log; delete its DONE to train it again$"):
+        reproduce.read_scalars(folder)
+
+
+def test_a_second_reproduce_on_one_workdir_is_refused_while_the_first_trains(tmp_path, monkeypatch):
+    started = []
+    monkeypatch.setattr(reproduce, "command", lambda preset, env, method, seed, steps=None: started.append(seed) or [sys.executable, "-c", "pass"])
+    args = reproduce.Args(envs=("Pendulum-v1",), methods=("sac",), seeds=(1,), preset="quick", workdir=str(tmp_path / "work"))
+    with reproduce.holding(tmp_path / "work"):  # as a first reproduce.py in another terminal holds it
+        with pytest.raises(SystemExit, match=r"^reproduce: error: another reproduce.py is training in .*work; wait for it to end, or use another --workdir$"):
+            reproduce.launch(args)
+        assert started == [] and not (tmp_path / "work" / "Pendulum-v1").exists()  # nothing started, nothing cleared
+    reproduce.launch(args)  # released
+    assert started == [1] and (reproduce.run_dir(tmp_path / "work", "Pendulum-v1", "sac", 1) / "DONE").exists()
