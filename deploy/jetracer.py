@@ -170,6 +170,9 @@ class Train(Common):
             ("train_every", self.train_every >= 1, ">= 1"),
             ("gradient_steps", self.gradient_steps >= 1, ">= 1"),
             ("baseline_reward_per_step", math.isfinite(self.baseline_reward_per_step), "finite"),
+            # a directory "exists": it was refused as "an earlier training", and "" failed only as it was written
+            ("checkpoint", bool(self.checkpoint) and not self.checkpoint.endswith(("/", os.sep)) and not os.path.isdir(self.checkpoint),
+             "a file's path (not empty, not a directory)"),
         ]
 
 

@@ -94,6 +94,14 @@ def test_deploy_checks_the_car_safety_settings():
     jetracer.Baseline(watchdog_ms=21)
 
 
+def test_deploy_train_refuses_a_checkpoint_that_is_no_file_path(tmp_path):
+    for bad in ("", str(tmp_path), f"{tmp_path / 'new'}/"):  # before: "... holds an earlier training", or a failed first save
+        with pytest.raises(ValueError, match=r"--checkpoint must be a file's path \(not empty, not a directory\)"):
+            jetracer.Train(checkpoint=bad)
+    jetracer.Train(checkpoint=str(tmp_path / "train.pt"))
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize(
     "command, message",
     [
