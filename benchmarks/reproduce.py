@@ -154,8 +154,10 @@ def holding(workdir: Path) -> Iterator[None]:
             return
         try:
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
+        except BlockingIOError:
             raise SystemExit(f"reproduce: error: another reproduce.py is training in {workdir}; wait for it to end, or use another --workdir") from None
+        except OSError as err:  # a file system without locks (some network and FUSE ones): run, saying what is not guarded
+            print(f"reproduce: warning: cannot lock {workdir / '.lock'} ({err}); nothing keeps a second reproduce.py off this workdir", file=sys.stderr)
         yield
 
 

@@ -612,9 +612,12 @@ def holding(checkpoint: str) -> Iterator[None]:
                 import fcntl
 
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            raise SystemExit(f"train: error: another training is using --checkpoint {checkpoint} (it holds {lock});"
-                             " wait for it to end, or pass another --checkpoint") from None
+        except OSError as err:
+            if sys.platform == "win32" or isinstance(err, BlockingIOError):  # held by another process
+                raise SystemExit(f"train: error: another training is using --checkpoint {checkpoint} (it holds {lock});"
+                                 " wait for it to end, or pass another --checkpoint") from None
+            # a file system without locks (some network and FUSE ones): train, saying what is not guarded
+            print(f"train: warning: cannot lock {lock} ({err}); nothing keeps a second training off this checkpoint", file=sys.stderr)
         yield
     finally:
         if not os.path.exists(checkpoint):  # no state came of it (a typo, a car that never armed): leave no lock file either

@@ -757,6 +757,19 @@ def test_a_training_in_progress_holds_its_checkpoint_against_a_second_one(tmp_pa
     assert torch.load(state, weights_only=True)["counters"]["step"] == 40
 
 
+def test_a_checkpoint_on_a_file_system_without_locks_still_trains_with_a_warning(tmp_path, monkeypatch, capsys):
+    import errno
+    import fcntl
+
+    def no_locks(fd, operation):  # some network and FUSE file systems: not "another training holds it"
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    with jetracer.holding(str(tmp_path / "train.pt")):
+        assert (tmp_path / "train.pt.lock").exists()
+    assert "train: warning: cannot lock" in capsys.readouterr().err and not (tmp_path / "train.pt.lock").exists()  # no state: no lock file
+
+
 def test_a_save_writes_through_a_temporary_file_of_its_own(tmp_path):
     hp = jetracer.car_jirl_defaults()
     hp.hidden_size = 8

@@ -237,3 +237,16 @@ def test_a_second_reproduce_on_one_workdir_is_refused_while_the_first_trains(tmp
         assert started == [] and not (tmp_path / "work" / "Pendulum-v1").exists()  # nothing started, nothing cleared
     reproduce.launch(args)  # released
     assert started == [1] and (reproduce.run_dir(tmp_path / "work", "Pendulum-v1", "sac", 1) / "DONE").exists()
+
+
+def test_a_workdir_that_cannot_be_locked_still_runs_with_a_warning(tmp_path, monkeypatch, capsys):
+    import errno
+    import fcntl
+
+    def no_locks(fd, operation):  # a file system without locks
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    with reproduce.holding(tmp_path):
+        ran = True
+    assert ran and "reproduce: warning: cannot lock" in capsys.readouterr().err
