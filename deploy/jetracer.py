@@ -602,6 +602,7 @@ def holding(checkpoint: str) -> Iterator[None]:
         fd = os.open(lock, os.O_CREAT | os.O_RDWR)
     except OSError as err:
         raise SystemExit(f"train: error: cannot write --checkpoint {checkpoint}: {err}") from None
+    held = False  # only the holder may remove the file: a refused run removing it let the next run lock a new one beside the holder's
     try:
         try:
             if sys.platform == "win32":
@@ -618,9 +619,10 @@ def holding(checkpoint: str) -> Iterator[None]:
                                  " wait for it to end, or pass another --checkpoint") from None
             # a file system without locks (some network and FUSE ones): train, saying what is not guarded
             print(f"train: warning: cannot lock {lock} ({err}); nothing keeps a second training off this checkpoint", file=sys.stderr)
+        held = True  # this run's: locked, or on a file system without locks
         yield
     finally:
-        if not os.path.exists(checkpoint):  # no state came of it (a typo, a car that never armed): leave no lock file either
+        if held and not os.path.exists(checkpoint):  # no state came of it (a typo, a car that never armed): leave no lock file either
             with contextlib.suppress(OSError):  # Windows keeps an open file
                 os.remove(lock)
         os.close(fd)  # releases the lock; beside a state the empty file stays (removed, two later runs could each lock a file of their own)

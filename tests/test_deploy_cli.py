@@ -752,6 +752,16 @@ def test_a_training_in_progress_holds_its_checkpoint_against_a_second_one(tmp_pa
             with jetracer.holding(str(state)):
                 pass
     assert state.read_bytes() == saved and len(list((tmp_path / "logs").iterdir())) == 1  # the car never armed for the refused ones
+    fresh = tmp_path / "fresh.pt"  # no state yet: three fresh trainings started together on one checkpoint
+    with jetracer.holding(str(fresh)):
+        out = subprocess.run([sys.executable, "-m", "deploy.jetracer", "train", "--checkpoint", str(fresh), "--log-dir", str(tmp_path / "logs")],
+                             cwd=ROOT, capture_output=True, text=True, timeout=120)  # fmt: skip
+        assert "another training is using" in out.stderr, out.stderr
+        # the refused run leaves the holder's lock file: removed, the third would lock a new file beside it and run too
+        with pytest.raises(SystemExit, match="another training is using"):
+            with jetracer.holding(str(fresh)):
+                pass
+    assert not Path(f"{fresh}.lock").exists()  # the holder, with no state, leaves no lock file
     out = train("--resume", steps=40)  # released: the training goes on
     assert out.returncode == 0, out.stderr
     assert torch.load(state, weights_only=True)["counters"]["step"] == 40
