@@ -564,6 +564,12 @@ def load_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
         cause = (str(err).strip().splitlines() or ["the file ends early"])[0].split(". ")[0]
         raise ValueError(f"{path} is not a readable training state ({type(err).__name__}: {cause})") from None
     if not isinstance(state, dict) or state.get("format") != TRAIN_STATE_FORMAT:
+        found = state.get("format") if isinstance(state, dict) else None
+        if found == jirl.CHECKPOINT_FORMAT:  # the policy `train` writes beside a state (or a simulated run's): say where the state is
+            suffix = policy_path("")  # what policy_path appends to a state's path
+            beside = path[: -len(suffix)] if path.endswith(suffix) else ""
+            hint = f"; resume from the training state {beside}" if beside and os.path.exists(beside) else ""
+            raise ValueError(f"{path} is a policy ({found}), not a {TRAIN_STATE_FORMAT} training state{hint}")
         raise ValueError(f"{path} is not a {TRAIN_STATE_FORMAT} file")
 
     def table(key: str) -> dict:  # a part that must be a dict, {} where it is missing or is not one

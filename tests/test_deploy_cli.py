@@ -780,6 +780,20 @@ def test_a_checkpoint_on_a_file_system_without_locks_still_trains_with_a_warning
     assert "train: warning: cannot lock" in capsys.readouterr().err and not (tmp_path / "train.pt.lock").exists()  # no state: no lock file
 
 
+def test_resuming_from_the_policy_names_the_training_state_beside_it(tmp_path):
+    hp = jetracer.car_jirl_defaults()
+    hp.hidden_size = 8
+    state = tmp_path / "train.pt"
+    sac, rb = jetracer.jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, hp), jetracer.jirl.ReplayBuffer(10, jetracer.OBS_SIZE, 2, seed=0)
+    jetracer.save_training_state(str(state), sac, rb, dict(jetracer.TRAIN_COUNTERS, step=3), jetracer.Train(jirl=hp, checkpoint=str(state)))
+    policy = jetracer.policy_path(str(state))
+    with pytest.raises(SystemExit) as raised:  # before: "... is not a jirl-car-training-v2 file"
+        jetracer.train(jetracer.Train(jirl=hp, checkpoint=policy, resume=True, total_steps=50, log_dir=str(tmp_path / "logs")))
+    assert str(raised.value) == (f"train: error: {policy} is a policy (jirl-sac-checkpoint-v2), not a jirl-car-training-v2 training state;"
+                                 f" resume from the training state {state}")  # fmt: skip
+    assert torch.load(state, weights_only=True)["counters"]["step"] == 3 and not (tmp_path / "logs").exists()
+
+
 def test_a_save_writes_through_a_temporary_file_of_its_own(tmp_path):
     hp = jetracer.car_jirl_defaults()
     hp.hidden_size = 8
