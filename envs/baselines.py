@@ -47,14 +47,17 @@ def load_baseline(spec: str) -> Baseline:
         raise ValueError(f"baseline {spec!r} must look like 'module:function' (an absolute module name, one colon)")
     try:
         module = importlib.import_module(module_name)
-    except ImportError as err:
+    except (ImportError, ValueError) as err:  # a ValueError of the module itself (a missing setting) is named too
         raise ValueError(f"cannot import baseline module {module_name!r}: {err}") from None
     try:
         baseline = getattr(module, attribute)
     except AttributeError:
         raise ValueError(f"module {module_name!r} has no attribute {attribute!r}") from None
     if isinstance(baseline, type):
-        baseline = baseline()
+        try:
+            baseline = baseline()
+        except ValueError as err:  # a class refusing its settings; any other error keeps its traceback
+            raise ValueError(f"cannot make baseline {spec!r}: {err}") from None
     if not callable(baseline):
         raise ValueError(f"baseline {spec!r} is not callable")
     return baseline

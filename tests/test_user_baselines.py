@@ -73,6 +73,14 @@ def test_a_baseline_that_refuses_its_settings_is_named_and_a_bug_in_it_keeps_its
         load("user_controllers:Refusing", "Pendulum-v1")
     with pytest.raises(AttributeError, match="gian"):  # the user's own bug: not dressed up as a bad --baseline
         load("user_controllers:Buggy", "Pendulum-v1")
+    from envs.baselines import load_baseline  # python -m envs.baselines --baseline ...
+
+    with pytest.raises(ValueError, match=r"^cannot import baseline module 'refusing_module': set BASELINE_GAIN first$"):
+        load_baseline("refusing_module:act")
+    with pytest.raises(ValueError, match=r"^cannot make baseline 'user_controllers:Refusing': gain must be positive$"):
+        load_baseline("user_controllers:Refusing")
+    with pytest.raises(AttributeError, match="gian"):
+        load_baseline("user_controllers:Buggy")
 
 
 @pytest.mark.parametrize(
