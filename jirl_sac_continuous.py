@@ -741,7 +741,10 @@ def claim_run_dir(run_name: str) -> str:
 if __name__ == "__main__":
     args = tyro.cli(Args)
     sys.path.append(os.getcwd())  # `module:...` in --env-id and --baseline may name a module in the current directory; last, so it shadows nothing installed
-    run_name = claim_run_dir(f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}")  # before make_env, whose video folder shares the name
+    try:  # before make_env, whose video folder shares the name
+        run_name = claim_run_dir(f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}")
+    except OSError as err:  # a file named runs in the way, no permission, a full disk
+        raise SystemExit(f"{args.exp_name}: error: cannot make the run's folder in runs/: {err}")
 
     # TRY NOT TO MODIFY: seeding
     random.seed(args.seed)

@@ -543,7 +543,10 @@ if __name__ == "__main__":
     batch_size = args.num_steps
     minibatch_size = batch_size // args.num_minibatches  # the smallest minibatch: np.array_split spreads the remainder
     num_iterations = max(1, args.total_timesteps // batch_size)
-    run_name = claim_run_dir(f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}")  # before make_env, whose video folder shares the name
+    try:  # before make_env, whose video folder shares the name
+        run_name = claim_run_dir(f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}")
+    except OSError as err:  # a file named runs in the way, no permission, a full disk
+        raise SystemExit(f"{args.exp_name}: error: cannot make the run's folder in runs/: {err}")
 
     # TRY NOT TO MODIFY: seeding
     random.seed(args.seed)

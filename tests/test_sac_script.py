@@ -211,6 +211,16 @@ def test_claim_run_dir_never_gives_two_runs_one_directory(script, tmp_path, monk
 
 
 @pytest.mark.parametrize("script", SCRIPTS)
+def test_a_file_named_runs_in_the_way_is_a_one_line_error(script, tmp_path):
+    (tmp_path / "runs").write_text("a user's notes")
+    out = run_script(ROOT / f"{script}.py", ["--env-id", "Pendulum-v1", "--total-timesteps", "10"], tmp_path)
+    assert out.returncode != 0 and "Traceback" not in out.stderr, out.stderr  # before: a FileExistsError traceback
+    last = out.stderr.strip().splitlines()[-1]  # then the system's words, e.g. "[Errno 17] File exists: 'runs'"
+    assert last.startswith(f"{script}: error: cannot make the run's folder in runs/: ") and last.endswith("'runs'"), last
+    assert (tmp_path / "runs").read_text() == "a user's notes"
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
 def test_claim_run_dir_tries_again_when_runs_vanishes_in_between(script, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "runs").mkdir()
