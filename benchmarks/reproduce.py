@@ -401,10 +401,19 @@ def figures(results: dict, output: Path) -> list[Path]:
     return paths
 
 
+def file_in_the_way(folder: str) -> Optional[Path]:
+    """The file where folder, or a folder above it, would have to be made; None if there is none."""
+    path = Path(folder).absolute()
+    return next((p for p in (path, *path.parents) if p.exists() and not p.is_dir()), None)
+
+
 def main(args: Args) -> None:
     unknown = [m for m in args.methods if m not in SCRIPTS] + [e for e in args.envs if e not in PRESETS[args.preset]]
     if unknown:
         raise SystemExit(f"reproduce: error: unknown methods or envs {unknown}")
+    for flag, folder in (("--workdir", args.workdir), ("--output", args.output)):  # checked now, not after hours of training
+        if (file := file_in_the_way(folder)) is not None:
+            raise SystemExit(f"reproduce: error: {flag} {folder} cannot be a folder: {file} is a file")
     if not args.report_only:
         launch(args)
     results = collect(Path(args.workdir), args.envs, args.methods, args.seeds)

@@ -250,3 +250,16 @@ def test_a_workdir_that_cannot_be_locked_still_runs_with_a_warning(tmp_path, mon
     with reproduce.holding(tmp_path):
         ran = True
     assert ran and "reproduce: warning: cannot lock" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("flag", ["workdir", "output"])
+def test_a_file_in_the_way_of_a_folder_is_refused_before_anything_trains(tmp_path, monkeypatch, flag):
+    started = []
+    monkeypatch.setattr(reproduce, "command", lambda preset, env, method, seed, steps=None: started.append(seed) or [sys.executable, "-c", "pass"])
+    (tmp_path / "afile").write_text("a user's notes")
+    folders = {"workdir": str(tmp_path / "work"), "output": str(tmp_path / "out"), flag: str(tmp_path / "afile" / "sub")}
+    args = reproduce.Args(envs=("Pendulum-v1",), methods=("sac",), seeds=(1,), preset="quick", **folders)
+    # before: a FileExistsError or NotADirectoryError traceback, for --output only once every run had trained
+    with pytest.raises(SystemExit, match=rf"^reproduce: error: --{flag} .*sub cannot be a folder: .*afile is a file$"):
+        reproduce.main(args)
+    assert started == [] and not (tmp_path / "work").exists() and (tmp_path / "afile").read_text() == "a user's notes"
