@@ -211,7 +211,7 @@ def launch_holding(args: Args) -> None:
     import submitit
 
     if args.launcher == "slurm":
-        executor = submitit.AutoExecutor(folder=str(workdir / "slurm"))
+        executor = submitit.AutoExecutor(folder=str(workdir / "slurm"), cluster="slurm")  # never its fallback: every run at once, here
         executor.update_parameters(timeout_min=args.slurm_timeout_min, cpus_per_task=1, slurm_partition=args.slurm_partition or None)
     else:
         executor = submitit.LocalExecutor(folder=str(workdir / "submitit"))
@@ -411,6 +411,9 @@ def main(args: Args) -> None:
     unknown = [m for m in args.methods if m not in SCRIPTS] + [e for e in args.envs if e not in PRESETS[args.preset]]
     if unknown:
         raise SystemExit(f"reproduce: error: unknown methods or envs {unknown}")
+    if args.launcher == "slurm" and not args.report_only and shutil.which("sbatch") is None:
+        # submitit's AutoExecutor would fall back to starting every run at once on this machine
+        raise SystemExit("reproduce: error: --launcher slurm needs Slurm (no sbatch here): run it where jobs are submitted, or use --launcher local")
     for flag, folder in (("--workdir", args.workdir), ("--output", args.output)):  # checked now, not after hours of training
         if (file := file_in_the_way(folder)) is not None:
             raise SystemExit(f"reproduce: error: {flag} {folder} cannot be a folder: {file} is a file")

@@ -263,3 +263,28 @@ def test_a_file_in_the_way_of_a_folder_is_refused_before_anything_trains(tmp_pat
     with pytest.raises(SystemExit, match=rf"^reproduce: error: --{flag} .*sub cannot be a folder: .*afile is a file$"):
         reproduce.main(args)
     assert started == [] and not (tmp_path / "work").exists() and (tmp_path / "afile").read_text() == "a user's notes"
+
+
+def test_the_slurm_launcher_without_slurm_is_refused_instead_of_running_every_run_here(tmp_path, monkeypatch):
+    import submitit
+
+    started = []
+    monkeypatch.setattr(reproduce, "command", lambda preset, env, method, seed, steps=None: started.append(seed) or [sys.executable, "-c", "pass"])
+    args = reproduce.Args(envs=("Pendulum-v1",), methods=("sac",), seeds=(1, 2), preset="quick", launcher="slurm",
+                          workdir=str(tmp_path / "work"), output=str(tmp_path / "out"))  # fmt: skip
+    monkeypatch.setattr(reproduce.shutil, "which", lambda name: None)  # a machine without Slurm
+    # before: submitit's AutoExecutor fell back to its local executor and started both runs here at once
+    with pytest.raises(SystemExit, match=r"^reproduce: error: --launcher slurm needs Slurm \(no sbatch here\)"):
+        reproduce.main(args)
+    assert started == [] and not (tmp_path / "work").exists()
+
+    class Asked(Exception):
+        pass
+
+    def executor(folder, cluster=None, **kwargs):  # where sbatch exists: the executor is Slurm's, never a fallback
+        raise Asked(cluster)
+
+    monkeypatch.setattr(reproduce.shutil, "which", lambda name: f"/usr/bin/{name}")
+    monkeypatch.setattr(submitit, "AutoExecutor", executor)
+    with pytest.raises(Asked, match="^slurm$"):
+        reproduce.main(args)
