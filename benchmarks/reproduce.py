@@ -197,15 +197,20 @@ def launch_holding(args: Args) -> None:
         start, finished, failed = time.time(), 0, []
         with ThreadPoolExecutor(max_workers=args.workers) as pool:
             futures = {pool.submit(run_one, cmd, folder): folder for cmd, folder in todo}
-            for future in as_completed(futures):
-                code = future.result()
-                if code != 0:  # the other runs go on; their results are not lost to one failure
-                    failed.append(futures[future])
-                finished += 1
-                elapsed = time.time() - start
-                eta = elapsed / finished * (len(todo) - finished)
-                outcome = "done" if code == 0 else f"FAILED (exit {code})"
-                print(f"[{finished}/{len(todo)}] {futures[future]} {outcome}; elapsed {elapsed / 60:.1f} min, ETA {eta / 60:.1f} min", flush=True)
+            try:
+                for future in as_completed(futures):
+                    code = future.result()
+                    if code != 0:  # the other runs go on; their results are not lost to one failure
+                        failed.append(futures[future])
+                    finished += 1
+                    elapsed = time.time() - start
+                    eta = elapsed / finished * (len(todo) - finished)
+                    outcome = "done" if code == 0 else f"FAILED (exit {code})"
+                    print(f"[{finished}/{len(todo)}] {futures[future]} {outcome}; elapsed {elapsed / 60:.1f} min, ETA {eta / 60:.1f} min", flush=True)
+            except KeyboardInterrupt:  # Ctrl-C: start no queued run (the pool would); those running got the signal too
+                for future in futures:
+                    future.cancel()
+                raise SystemExit("reproduce: interrupted; the same command trains again what has no DONE, from scratch") from None
         report_failures(failed, len(todo))
         return
     import submitit

@@ -288,3 +288,23 @@ def test_the_slurm_launcher_without_slurm_is_refused_instead_of_running_every_ru
     monkeypatch.setattr(submitit, "AutoExecutor", executor)
     with pytest.raises(Asked, match="^slurm$"):
         reproduce.main(args)
+
+
+def test_ctrl_c_starts_no_queued_run(tmp_path, monkeypatch):
+    monkeypatch.setattr(reproduce, "command", lambda preset, env, method, seed, steps=None: [sys.executable, "-c", "import time; time.sleep(0.3)"])
+    real_as_completed = reproduce.as_completed
+
+    def interrupted(futures):  # Ctrl-C as the first run finishes
+        yield next(real_as_completed(futures))
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(reproduce, "as_completed", interrupted)
+    args = reproduce.Args(envs=("Pendulum-v1",), methods=("sac",), seeds=(1, 2, 3), preset="quick", workdir=str(tmp_path / "work"), workers=1)
+    try:
+        with pytest.raises(SystemExit, match="^reproduce: interrupted; the same command trains again what has no DONE, from scratch$"):
+            reproduce.launch(args)
+    except KeyboardInterrupt:  # caught here, or it would end the whole test session
+        pytest.fail("the Ctrl-C escaped launch (after the pool had run every queued run)")
+    folder = {seed: reproduce.run_dir(tmp_path / "work", "Pendulum-v1", "sac", seed) for seed in (1, 2, 3)}
+    assert (folder[1] / "DONE").exists()
+    assert not folder[3].exists()  # before: the pool went on to start every queued run, one Ctrl-C each
