@@ -503,6 +503,10 @@ def report(session: CarSession, rewards: List[float], mode: str) -> None:
     print(f"{mode}: {'; '.join(parts)}")
 
 
+class NotATrainingState(ValueError):
+    """The file given to `train --resume` is no training state at all (unreadable, or another kind of file)."""
+
+
 class CheckpointTaken(Exception):
     """A fresh run's first save found its path taken (by another run started on the same --checkpoint)."""
 
@@ -562,15 +566,15 @@ def load_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
         raise
     except Exception as err:  # torch raises many types for a damaged file; keep the first sentence (the rest advises weights_only=False)
         cause = (str(err).strip().splitlines() or ["the file ends early"])[0].split(". ")[0]
-        raise ValueError(f"{path} is not a readable training state ({type(err).__name__}: {cause})") from None
+        raise NotATrainingState(f"{path} is not a readable training state ({type(err).__name__}: {cause})") from None
     if not isinstance(state, dict) or state.get("format") != TRAIN_STATE_FORMAT:
         found = state.get("format") if isinstance(state, dict) else None
         if found == jirl.CHECKPOINT_FORMAT:  # the policy `train` writes beside a state (or a simulated run's): say where the state is
             suffix = policy_path("")  # what policy_path appends to a state's path
             beside = path[: -len(suffix)] if path.endswith(suffix) else ""
             hint = f"; resume from the training state {beside}" if beside and os.path.exists(beside) else ""
-            raise ValueError(f"{path} is a policy ({found}), not a {TRAIN_STATE_FORMAT} training state{hint}")
-        raise ValueError(f"{path} is not a {TRAIN_STATE_FORMAT} file")
+            raise NotATrainingState(f"{path} is a policy ({found}), not a {TRAIN_STATE_FORMAT} training state{hint}")
+        raise NotATrainingState(f"{path} is not a {TRAIN_STATE_FORMAT} file")
 
     def table(key: str) -> dict:  # a part that must be a dict, {} where it is missing or is not one
         return state[key] if isinstance(state.get(key), dict) else {}
@@ -609,6 +613,7 @@ def holding(checkpoint: str) -> Iterator[None]:
     except OSError as err:
         raise SystemExit(f"train: error: cannot write --checkpoint {checkpoint}: {err}") from None
     held = False  # only the holder may remove the file: a refused run removing it let the next run lock a new one beside the holder's
+    no_state = False  # whether --resume found no training state in the file
     try:
         try:
             if sys.platform == "win32":
@@ -627,8 +632,12 @@ def holding(checkpoint: str) -> Iterator[None]:
             print(f"train: warning: cannot lock {lock} ({err}); nothing keeps a second training off this checkpoint", file=sys.stderr)
         held = True  # this run's: locked, or on a file system without locks
         yield
+    except SystemExit as end:
+        no_state = isinstance(end.__cause__, NotATrainingState)
+        raise
     finally:
-        if held and not os.path.exists(checkpoint):  # no state came of it (a typo, a car that never armed): leave no lock file either
+        # no state came of it (a typo, a car that never armed, a policy given to --resume): leave no lock file either
+        if held and (no_state or not os.path.exists(checkpoint)):
             with contextlib.suppress(OSError):  # Windows keeps an open file
                 os.remove(lock)
         os.close(fd)  # releases the lock; beside a state the empty file stays (removed, two later runs could each lock a file of their own)
@@ -661,7 +670,7 @@ def train_holding(args: Train) -> dict:
         try:
             counters = load_training_state(args.checkpoint, sac, rb)
         except (ValueError, FileNotFoundError) as err:
-            raise SystemExit(f"train: error: {err}")
+            raise SystemExit(f"train: error: {err}") from err  # the cause tells holding() whether the file is a state
         if counters["step"] >= args.total_steps:  # the car would be armed to drive no step
             raise SystemExit(f"train: error: {args.checkpoint} is at step {counters['step']}, and --total-steps {args.total_steps}"
                              " counts from the start of the training: pass more to continue it")

@@ -792,6 +792,25 @@ def test_resuming_from_the_policy_names_the_training_state_beside_it(tmp_path):
     assert str(raised.value) == (f"train: error: {policy} is a policy (jirl-sac-checkpoint-v2), not a jirl-car-training-v2 training state;"
                                  f" resume from the training state {state}")  # fmt: skip
     assert torch.load(state, weights_only=True)["counters"]["step"] == 3 and not (tmp_path / "logs").exists()
+    assert not Path(jetracer.lock_path(policy)).exists()  # no training state there: no lock file left beside the policy
+
+
+def test_a_resume_that_finds_no_training_state_leaves_no_lock_file_and_a_state_keeps_its_own(tmp_path):
+    hp = jetracer.car_jirl_defaults()
+    hp.hidden_size = 8
+    notes = tmp_path / "notes.txt"
+    notes.write_text("not a training state")
+    state = tmp_path / "train.pt"
+    sac, rb = jetracer.jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, hp), jetracer.jirl.ReplayBuffer(10, jetracer.OBS_SIZE, 2, seed=0)
+    jetracer.save_training_state(str(state), sac, rb, dict(jetracer.TRAIN_COUNTERS, step=3), jetracer.Train(jirl=hp, checkpoint=str(state)))
+    wider = jetracer.car_jirl_defaults()
+    wider.hidden_size = 16  # a real state, read by a run with other settings
+    for path, settings, message in ((notes, hp, "is not a readable training state"), (state, wider, "holds an agent of 8 units")):
+        with pytest.raises(SystemExit, match=message):
+            jetracer.train(jetracer.Train(jirl=settings, checkpoint=str(path), resume=True, total_steps=50, log_dir=str(tmp_path / "logs")))
+    assert notes.read_text() == "not a training state" and not Path(jetracer.lock_path(str(notes))).exists()  # before: notes.txt.lock stayed
+    assert Path(jetracer.lock_path(str(state))).exists()  # beside a state the lock file stays, as after any run on it
+    assert torch.load(state, weights_only=True)["counters"]["step"] == 3 and not (tmp_path / "logs").exists()
 
 
 def test_a_save_writes_through_a_temporary_file_of_its_own(tmp_path):
