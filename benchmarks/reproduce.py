@@ -162,13 +162,38 @@ def holding(workdir: Path) -> Iterator[None]:
 
 
 def run_one(cmd: list[str], folder: str) -> int:
-    """Train one run in `folder`, its output in log.txt; write DONE on success. Returns the exit code."""
+    """Train one run in `folder`, its output in log.txt; write DONE on success. Returns the exit code.
+
+    A submitted job runs this too (JOB_COMMAND), so that its DONE is written where it trains: a run that
+    finishes after the reproduce.py waiting for it has gone (a closed terminal, Ctrl-C) is not lost."""
     path = fresh(Path(folder))
     with open(path / "log.txt", "w") as log:
         code = subprocess.run(cmd, cwd=path, stdout=log, stderr=subprocess.STDOUT).returncode
     if code == 0:
         (path / "DONE").write_text(shlex.join(cmd) + "\n")  # quoted: a path with a space stays one argument
     return code
+
+
+# What a submitit job runs: run_one, imported by path (the job's Python has no benchmarks/ on its path);
+# then the arguments: benchmarks/, the run's folder, the run's command.
+JOB_COMMAND = [sys.executable, "-c", "import sys; sys.path.insert(0, sys.argv[1]); import reproduce; sys.exit(reproduce.run_one(sys.argv[3:], sys.argv[2]))"]
+
+
+def still_queued(folders: list[str]) -> list[tuple[str, str]]:
+    """(folder, job id) of each run whose job, submitted by an earlier call, is still in Slurm's queue."""
+    jobs = {folder: (Path(folder) / "JOB").read_text().strip() for folder in folders if (Path(folder) / "JOB").exists()}
+    if not jobs:
+        return []
+    import getpass
+
+    try:
+        out = subprocess.run(["squeue", "--noheader", "--format", "%i", "--user", getpass.getuser()], capture_output=True, text=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired) as err:
+        raise SystemExit(f"reproduce: error: cannot ask Slurm whether the jobs of an earlier call still run (squeue: {err})") from None
+    if out.returncode != 0:
+        raise SystemExit(f"reproduce: error: cannot ask Slurm whether the jobs of an earlier call still run (squeue: {out.stderr.strip()})")
+    queued = set(out.stdout.split())
+    return [(folder, job) for folder, job in jobs.items() if job in queued]
 
 
 def report_failures(failed: list[str], total: int) -> None:
@@ -216,6 +241,10 @@ def launch_holding(args: Args) -> None:
     import submitit
 
     if args.launcher == "slurm":
+        queued = still_queued([folder for _, folder in todo])
+        if queued:  # submitted again, two jobs would train one run in one folder
+            raise SystemExit(f"reproduce: error: {len(queued)} runs submitted by an earlier call are still in Slurm's queue (e.g. {queued[0][0]},"
+                             f" job {queued[0][1]}); each writes its DONE as it ends: run this again once they have, or scancel them first")
         executor = submitit.AutoExecutor(folder=str(workdir / "slurm"), cluster="slurm")  # never its fallback: every run at once, here
         executor.update_parameters(timeout_min=args.slurm_timeout_min, cpus_per_task=1, slurm_partition=args.slurm_partition or None)
     else:
@@ -223,19 +252,20 @@ def launch_holding(args: Args) -> None:
         executor.update_parameters(timeout_min=args.slurm_timeout_min)
     submitted = []
     for cmd, folder in todo:
-        fresh(Path(folder))
-        # CommandFunction is importable by the workers; a function of this script would not be
-        submitted.append((executor.submit(submitit.helpers.CommandFunction(cmd, cwd=folder)), cmd, folder))
+        Path(folder).mkdir(parents=True, exist_ok=True)  # the job clears an earlier attempt's logs as it starts (run_one)
+        job = executor.submit(submitit.helpers.CommandFunction([*JOB_COMMAND, str(Path(__file__).resolve().parent), str(Path(folder).resolve()), *cmd]))
+        (Path(folder) / "JOB").write_text(f"{job.job_id}\n")  # a later call asks Slurm whether it still runs
+        submitted.append((job, folder))
     failed = []
-    for i, (job, cmd, folder) in enumerate(submitted, 1):
+    for i, (job, folder) in enumerate(submitted, 1):
         try:
-            (Path(folder) / "log.txt").write_text(job.result())
-        except Exception as err:  # submitit raises the script's failure here, with its output
-            (Path(folder) / "log.txt").write_text(str(err))
+            job.result()
+        except Exception as err:  # the run failed (its log.txt says why), or its job did (a time limit, a lost node): add submitit's account
+            with open(Path(folder) / "log.txt", "a") as log:
+                log.write(f"\n{err}\n")
             failed.append(folder)
             print(f"[{i}/{len(submitted)}] {folder} FAILED (job {job.job_id})", flush=True)
             continue
-        (Path(folder) / "DONE").write_text(shlex.join(cmd) + "\n")  # quoted: a path with a space stays one argument
         print(f"[{i}/{len(submitted)}] {folder} done (job {job.job_id})", flush=True)
     report_failures(failed, len(submitted))
 

@@ -292,6 +292,73 @@ def test_the_slurm_launcher_without_slurm_is_refused_instead_of_running_every_ru
         reproduce.main(args)
 
 
+WATCHER = """
+import sys
+sys.path.insert(0, sys.argv[1])
+import reproduce
+reproduce.command = lambda preset, env, method, seed, steps=None: [sys.executable, "-c", "import time; time.sleep(4); print('trained')"]
+reproduce.launch(reproduce.Args(envs=("Pendulum-v1",), methods=("sac",), seeds=(1,), preset="quick", launcher="submitit-local", workdir=sys.argv[2]))
+"""
+
+
+def test_a_submitted_run_that_ends_after_its_watcher_has_gone_is_done(tmp_path, monkeypatch, capsys):
+    """The job writes its own DONE: a reproduce.py killed while it waits (a closed terminal on a Slurm
+    login node) loses no run that goes on to finish."""
+    import subprocess
+
+    folder = reproduce.run_dir(tmp_path / "work", "Pendulum-v1", "sac", 1)
+    watcher = subprocess.Popen([sys.executable, "-c", WATCHER, str(ROOT / "benchmarks"), str(tmp_path / "work")])
+    deadline = time.time() + 60
+    while not list((tmp_path / "work" / "submitit").glob("*_submitted.pkl")) and watcher.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    watcher.kill()  # as the job starts: it sleeps 4 s before it prints
+    watcher.wait()
+    assert not (folder / "DONE").exists()
+    while not (folder / "DONE").exists() and time.time() < deadline:  # before: never, the watcher wrote it
+        time.sleep(0.1)
+    assert (folder / "DONE").exists() and (folder / "log.txt").read_text() == "trained\n"
+    assert (folder / "JOB").read_text().strip().isdigit()  # the job's id, for a later call to ask Slurm about
+    monkeypatch.setattr(reproduce, "command", lambda preset, env, method, seed, steps=None: [sys.executable, "-c", "import time; time.sleep(4); print('trained')"])
+    reproduce.launch(reproduce.Args(envs=("Pendulum-v1",), methods=("sac",), seeds=(1,), preset="quick", launcher="submitit-local",
+                                    workdir=str(tmp_path / "work")))  # fmt: skip
+    assert "1 runs, 1 already done, 0 to run" in capsys.readouterr().out
+
+
+def test_runs_whose_earlier_slurm_jobs_are_still_queued_are_not_submitted_again(tmp_path, monkeypatch):
+    import submitit
+
+    monkeypatch.setattr(reproduce, "command", lambda preset, env, method, seed, steps=None: [sys.executable, "-c", "pass", str(seed)])
+    args = reproduce.Args(envs=("Pendulum-v1",), methods=("sac",), seeds=(1, 2), preset="quick", launcher="slurm",
+                          workdir=str(tmp_path / "work"), output=str(tmp_path / "out"))  # fmt: skip
+    for seed, job in ((1, "4242"), (2, "4343")):  # what an earlier call, whose reproduce.py has gone, submitted
+        folder = reproduce.run_dir(tmp_path / "work", "Pendulum-v1", "sac", seed)
+        folder.mkdir(parents=True)
+        (folder / "JOB").write_text(f"{job}\n")
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    squeue = bin_dir / "squeue"
+    monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
+    monkeypatch.setattr(reproduce.shutil, "which", lambda name: f"/usr/bin/{name}")
+
+    class Submitted(Exception):
+        pass
+
+    def executor(folder, cluster=None, **kwargs):
+        raise Submitted(cluster)
+
+    monkeypatch.setattr(submitit, "AutoExecutor", executor)
+    squeue.write_text("#!/bin/sh\necho 4242\necho 999_3\n")  # seed 1's job still runs
+    squeue.chmod(0o755)
+    with pytest.raises(SystemExit, match=r"^reproduce: error: 1 runs submitted by an earlier call are still in Slurm's queue \(e\.g\. .*seed1, job 4242\);"):
+        reproduce.main(args)  # before: submitted again, two jobs training seed 1 in one folder
+    squeue.write_text("#!/bin/sh\necho 999_3\n")  # both have left the queue: submitted
+    with pytest.raises(Submitted):
+        reproduce.main(args)
+    squeue.write_text("#!/bin/sh\necho 'slurm_load_jobs error: Unable to contact slurm controller' >&2\nexit 1\n")
+    with pytest.raises(SystemExit, match=r"cannot ask Slurm whether the jobs of an earlier call still run \(squeue: slurm_load_jobs error: Unable"):
+        reproduce.main(args)
+
+
 def test_ctrl_c_starts_no_queued_run(tmp_path, monkeypatch):
     monkeypatch.setattr(reproduce, "command", lambda preset, env, method, seed, steps=None: [sys.executable, "-c", "import time; time.sleep(0.3)"])
     real_as_completed = reproduce.as_completed
