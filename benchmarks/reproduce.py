@@ -23,8 +23,10 @@ import math
 import os
 import shlex
 import shutil
+import signal
 import subprocess
 import sys
+import threading
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor, as_completed
@@ -161,14 +163,63 @@ def holding(workdir: Path) -> Iterator[None]:
         yield
 
 
-def run_one(cmd: list[str], folder: str) -> int:
+class Terminated(Exception):
+    """SIGTERM, raised where the local launcher waits."""
+
+
+@contextlib.contextmanager
+def terminable() -> Iterator[None]:
+    """Inside, SIGTERM raises Terminated in the main thread instead of ending the process at once, which
+    left its trainings running on, and their DONE never written."""
+    if threading.current_thread() is not threading.main_thread():  # only the main thread may set a handler
+        yield
+        return
+
+    def terminated(signum, frame) -> None:
+        raise Terminated
+
+    previous = signal.signal(signal.SIGTERM, terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+class Trainings:
+    """The local launcher's running trainings, so that a stop reaches them: a SIGTERM (`kill`, `timeout`)
+    reaches this process alone, where Ctrl-C's SIGINT reaches the whole process group."""
+
+    def __init__(self) -> None:
+        self.lock, self.running, self.stopped = threading.Lock(), set(), False
+
+    def run(self, cmd: list[str], cwd: Path, log) -> int:
+        """Run cmd to its end and return its exit code; after stop(), start nothing (-SIGTERM)."""
+        with self.lock:
+            if self.stopped:
+                return -signal.SIGTERM
+            process = subprocess.Popen(cmd, cwd=cwd, stdout=log, stderr=subprocess.STDOUT)
+            self.running.add(process)
+        try:
+            return process.wait()
+        finally:
+            with self.lock:
+                self.running.discard(process)
+
+    def stop(self) -> None:
+        with self.lock:
+            self.stopped = True
+            for process in self.running:
+                process.terminate()
+
+
+def run_one(cmd: list[str], folder: str, trainings: Optional[Trainings] = None) -> int:
     """Train one run in `folder`, its output in log.txt; write DONE on success. Returns the exit code.
 
     A submitted job runs this too (JOB_COMMAND), so that its DONE is written where it trains: a run that
     finishes after the reproduce.py waiting for it has gone (a closed terminal, Ctrl-C) is not lost."""
     path = fresh(Path(folder))
     with open(path / "log.txt", "w") as log:
-        code = subprocess.run(cmd, cwd=path, stdout=log, stderr=subprocess.STDOUT).returncode
+        code = (trainings or Trainings()).run(cmd, path, log)
     if code == 0:
         (path / "DONE").write_text(shlex.join(cmd) + "\n")  # quoted: a path with a space stays one argument
     return code
@@ -207,6 +258,28 @@ def launch(args: Args) -> None:
         launch_holding(args)
 
 
+def launch_locally(todo: list[tuple[list[str], str]], workers: int) -> None:
+    """The local launcher: `workers` runs at a time, with progress and ETA; Ctrl-C or SIGTERM ends them all."""
+    start, finished, failed, trainings = time.time(), 0, [], Trainings()
+    with terminable(), ThreadPoolExecutor(max_workers=workers) as pool:
+        try:
+            futures = {pool.submit(run_one, cmd, folder, trainings): folder for cmd, folder in todo}
+            for future in as_completed(futures):
+                code = future.result()
+                if code != 0:  # the other runs go on; their results are not lost to one failure
+                    failed.append(futures[future])
+                finished += 1
+                elapsed = time.time() - start
+                eta = elapsed / finished * (len(todo) - finished)
+                outcome = "done" if code == 0 else f"FAILED (exit {code})"
+                print(f"[{finished}/{len(todo)}] {futures[future]} {outcome}; elapsed {elapsed / 60:.1f} min, ETA {eta / 60:.1f} min", flush=True)
+        except (KeyboardInterrupt, Terminated):  # start no queued run (the pool would), and end the running ones
+            trainings.stop()
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise SystemExit("reproduce: interrupted; the same command trains again what has no DONE, from scratch") from None
+    report_failures(failed, len(todo))
+
+
 def launch_holding(args: Args) -> None:
     workdir, preset = Path(args.workdir), PRESETS[args.preset]
     jobs = [(command(preset, env, method, seed, args.steps), str(run_dir(workdir, env, method, seed)))
@@ -219,24 +292,7 @@ def launch_holding(args: Args) -> None:
     if not todo:
         return
     if args.launcher == "local":
-        start, finished, failed = time.time(), 0, []
-        with ThreadPoolExecutor(max_workers=args.workers) as pool:
-            futures = {pool.submit(run_one, cmd, folder): folder for cmd, folder in todo}
-            try:
-                for future in as_completed(futures):
-                    code = future.result()
-                    if code != 0:  # the other runs go on; their results are not lost to one failure
-                        failed.append(futures[future])
-                    finished += 1
-                    elapsed = time.time() - start
-                    eta = elapsed / finished * (len(todo) - finished)
-                    outcome = "done" if code == 0 else f"FAILED (exit {code})"
-                    print(f"[{finished}/{len(todo)}] {futures[future]} {outcome}; elapsed {elapsed / 60:.1f} min, ETA {eta / 60:.1f} min", flush=True)
-            except KeyboardInterrupt:  # Ctrl-C: start no queued run (the pool would); those running got the signal too
-                for future in futures:
-                    future.cancel()
-                raise SystemExit("reproduce: interrupted; the same command trains again what has no DONE, from scratch") from None
-        report_failures(failed, len(todo))
+        launch_locally(todo, args.workers)
         return
     import submitit
 

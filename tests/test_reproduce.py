@@ -292,6 +292,42 @@ def test_the_slurm_launcher_without_slurm_is_refused_instead_of_running_every_ru
         reproduce.main(args)
 
 
+LAUNCHER = """
+import sys
+sys.path.insert(0, sys.argv[1])
+import reproduce
+# each run notes its process id in the marks folder, then trains for 60 s
+train = "import os, sys, time; open(os.path.join(sys.argv[1], str(os.getpid())), 'w').close(); time.sleep(60)"
+reproduce.command = lambda preset, env, method, seed, steps=None: [sys.executable, "-c", train, sys.argv[3]]
+reproduce.launch(reproduce.Args(envs=("Pendulum-v1",), methods=("sac",), seeds=(1, 2, 3), preset="quick", workers=2, workdir=sys.argv[2]))
+"""
+
+
+def test_sigterm_ends_the_local_launchers_trainings_and_starts_no_queued_one(tmp_path):
+    """`kill` or `timeout` sends SIGTERM to reproduce.py alone: it used to die at once, leaving its
+    trainings to run on unrecorded (no DONE) and unseen."""
+    import signal
+    import subprocess
+
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    launcher = subprocess.Popen([sys.executable, "-c", LAUNCHER, str(ROOT / "benchmarks"), str(tmp_path / "work"), str(marks)],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    deadline = time.time() + 60
+    while len(list(marks.iterdir())) < 2 and time.time() < deadline:  # both workers' runs have started
+        time.sleep(0.05)
+    launcher.send_signal(signal.SIGTERM)
+    out, err = launcher.communicate(timeout=30)
+    assert launcher.returncode == 1 and err.strip().splitlines()[-1] == "reproduce: interrupted; the same command trains again what has no DONE, from scratch", err
+    pids = [int(mark.name) for mark in marks.iterdir()]
+    assert len(pids) == 2  # the queued third run never started
+    time.sleep(0.5)
+    for pid in pids:  # before: both trained on for their 60 s
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
+    assert not list((tmp_path / "work").rglob("DONE"))
+
+
 WATCHER = """
 import sys
 sys.path.insert(0, sys.argv[1])
