@@ -101,7 +101,7 @@ def rollout(env, policy: Baseline, seed: int) -> np.ndarray:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description="Measure a baseline controller.")
+    parser = argparse.ArgumentParser(prog="python -m envs.baselines", description="Measure a baseline controller.")
     parser.add_argument("--env-id", default="Pendulum-v1", help="any env id the scripts accept (default: %(default)s)")
     parser.add_argument("--baseline", default="", help="module:function; default: the env's own")
     parser.add_argument("--episodes", type=int, default=20, help="episodes to run (default: %(default)s)")
@@ -114,7 +114,7 @@ def main(argv: list[str] | None = None) -> None:
         baseline = get_baseline(args.env_id, args.baseline)
         traces = [rollout(env, baseline, args.seed + i) for i in range(args.episodes)]
     except ValueError as err:
-        parser.exit(2, f"error: {err}\n")
+        parser.exit(2, f"{parser.prog}: error: {err}\n")  # as argparse words its own errors
     returns = np.array([t.sum() for t in traces])
     lengths = np.array([len(t) for t in traces])
     print(f"{args.env_id}, {args.episodes} episodes from seed {args.seed}")

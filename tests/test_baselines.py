@@ -145,6 +145,7 @@ def test_cli_refuses_what_it_cannot_measure(args, message, tmp_path):
     env = {**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{ROOT}"}
     out = subprocess.run([sys.executable, "-m", "envs.baselines", "--episodes", "20", *args], cwd=ROOT, capture_output=True, text=True, env=env)
     assert out.returncode == 2 and message in out.stderr and "Traceback" not in out.stderr
+    assert out.stderr.strip().splitlines()[-1].startswith("python -m envs.baselines: error: ")  # was "baselines.py: error:" or a bare "error:"
 
 
 @pytest.mark.parametrize("script", ["sac_continuous", "jirl_sac_continuous", "ppo_il", "trpo_il"])
