@@ -851,7 +851,7 @@ class _NullController:
 def main(argv: Optional[List[str]] = None) -> None:
     import tyro
 
-    args = tyro.extras.subcommand_cli_from_dict({"run": Run, "baseline": Baseline, "train": Train}, args=argv)
+    args = tyro.extras.subcommand_cli_from_dict({"run": Run, "baseline": Baseline, "train": Train}, prog="python -m deploy.jetracer", args=argv)
     {Run: run, Baseline: baseline, Train: train}[type(args)](args)
 
 

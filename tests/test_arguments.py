@@ -120,6 +120,8 @@ def test_the_command_line_reports_and_writes_nothing(tmp_path, command, message)
     assert out.returncode == 2, out.stderr
     assert message in out.stderr and "Traceback" not in out.stderr, out.stderr
     assert list(tmp_path.iterdir()) == [], "nothing is written before the arguments are checked"
+    if command[:2] == ["-m", "deploy.jetracer"]:  # the help it points to is a command to run, not the module's file
+        assert "see python -m deploy.jetracer --help" in out.stderr and str(ROOT) not in out.stderr, out.stderr
 
 
 def test_a_controller_that_refuses_to_arm_is_a_one_line_error(tmp_path):
