@@ -312,17 +312,26 @@ def launch_holding(args: Args) -> None:
         job = executor.submit(submitit.helpers.CommandFunction([*JOB_COMMAND, str(Path(__file__).resolve().parent), str(Path(folder).resolve()), *cmd]))
         (Path(folder) / "JOB").write_text(f"{job.job_id}\n")  # a later call asks Slurm whether it still runs
         submitted.append((job, folder))
-    failed = []
-    for i, (job, folder) in enumerate(submitted, 1):
-        try:
-            job.result()
-        except Exception as err:  # the run failed (its log.txt says why), or its job did (a time limit, a lost node): add submitit's account
-            with open(Path(folder) / "log.txt", "a") as log:
-                log.write(f"\n{err}\n")
-            failed.append(folder)
-            print(f"[{i}/{len(submitted)}] {folder} FAILED (job {job.job_id})", flush=True)
-            continue
-        print(f"[{i}/{len(submitted)}] {folder} done (job {job.job_id})", flush=True)
+    start, failed, folders = time.time(), [], {job.job_id: folder for job, folder in submitted}
+    poll = 10.0 if args.launcher == "slurm" else 0.5  # seconds between asking for the jobs' states
+    try:
+        for i, job in enumerate(submitit.helpers.as_completed([job for job, _ in submitted], poll_frequency=poll), 1):
+            folder, elapsed = folders[job.job_id], time.time() - start
+            try:
+                job.result()
+                outcome = "done"
+            except Exception as err:  # the run failed (its log.txt says why), or its job did (a time limit, a lost node): add submitit's account
+                with open(Path(folder) / "log.txt", "a") as log:
+                    log.write(f"\n{err}\n")
+                failed.append(folder)
+                outcome = "FAILED"
+            eta = elapsed / i * (len(submitted) - i)
+            print(f"[{i}/{len(submitted)}] {folder} {outcome} (job {job.job_id}); elapsed {elapsed / 60:.1f} min, ETA {eta / 60:.1f} min", flush=True)
+    except KeyboardInterrupt:
+        if args.launcher == "slurm":  # the jobs are Slurm's now
+            raise SystemExit("reproduce: stopped waiting; the jobs go on in Slurm, each writing its DONE as it ends:"
+                             " run the same command again once they have, or scancel them") from None
+        raise SystemExit("reproduce: interrupted; the same command trains again what has no DONE, from scratch") from None
     report_failures(failed, len(submitted))
 
 

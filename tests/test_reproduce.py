@@ -107,6 +107,38 @@ def test_submitit_local_executor(tmp_path):
     assert (reproduce.run_dir(tmp_path / "work", "Pendulum-v1", "sac", 2) / "DONE").exists()
 
 
+def test_submitted_runs_are_reported_as_they_end(tmp_path, monkeypatch, capsys):
+    def command(preset, env, method, seed, steps=None):  # seed 1 trains longest
+        return [sys.executable, "-c", f"import time; time.sleep({3 if seed == 1 else 0})", str(seed)]
+
+    monkeypatch.setattr(reproduce, "command", command)
+    args = reproduce.Args(envs=("Pendulum-v1",), methods=("sac",), seeds=(1, 2), preset="quick", launcher="submitit-local", workdir=str(tmp_path / "work"))
+    reproduce.launch(args)
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("[")]
+    # before: in the order submitted, so a run that failed in a minute was named only after one that trained for hours
+    assert [line.split()[1].endswith(seed) for line, seed in zip(lines, ("seed2", "seed1"))] == [True, True], lines
+    assert lines[0].startswith("[1/2] ") and " done (job " in lines[0] and "ETA" in lines[0]
+
+
+def test_ctrl_c_while_waiting_for_slurm_says_the_jobs_go_on(tmp_path, monkeypatch):
+    import submitit
+
+    monkeypatch.setattr(reproduce, "command", lambda preset, env, method, seed, steps=None: [sys.executable, "-c", "pass"])
+    monkeypatch.setattr(reproduce.shutil, "which", lambda name: f"/usr/bin/{name}")
+    monkeypatch.setattr(submitit, "AutoExecutor", lambda folder, cluster=None: submitit.LocalExecutor(folder=folder))  # Slurm's stand-in
+
+    def interrupted(jobs, poll_frequency):
+        for job in jobs:
+            job.result()  # the jobs end, in Slurm, after the user stopped waiting
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(submitit.helpers, "as_completed", interrupted)
+    args = reproduce.Args(envs=("Pendulum-v1",), methods=("sac",), seeds=(1,), preset="quick", launcher="slurm", workdir=str(tmp_path / "work"))
+    with pytest.raises(SystemExit, match=r"^reproduce: stopped waiting; the jobs go on in Slurm, each writing its DONE as it ends"):
+        reproduce.launch(args)  # before: a KeyboardInterrupt traceback
+    assert (reproduce.run_dir(tmp_path / "work", "Pendulum-v1", "sac", 1) / "DONE").exists()
+
+
 def test_unknown_method_is_an_error(tmp_path):
     with pytest.raises(SystemExit, match="unknown methods or envs"):
         reproduce.main(reproduce.Args(methods=("dqn",), workdir=str(tmp_path)))
