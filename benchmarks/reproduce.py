@@ -293,7 +293,12 @@ def launch_holding(args: Args) -> None:
         return
     if args.launcher == "local":
         launch_locally(todo, args.workers)
-        return
+    else:
+        launch_submitit(todo, args)
+
+
+def launch_submitit(todo: list[tuple[list[str], str]], args: Args) -> None:
+    """Slurm, or submitit's local executor: every run is a job, which writes its own DONE; progress as they end."""
     import submitit
 
     if args.launcher == "slurm":
@@ -301,10 +306,10 @@ def launch_holding(args: Args) -> None:
         if queued:  # submitted again, two jobs would train one run in one folder
             raise SystemExit(f"reproduce: error: {len(queued)} runs submitted by an earlier call are still in Slurm's queue (e.g. {queued[0][0]},"
                              f" job {queued[0][1]}); each writes its DONE as it ends: run this again once they have, or scancel them first")
-        executor = submitit.AutoExecutor(folder=str(workdir / "slurm"), cluster="slurm")  # never its fallback: every run at once, here
+        executor = submitit.AutoExecutor(folder=str(Path(args.workdir) / "slurm"), cluster="slurm")  # never its fallback: every run at once, here
         executor.update_parameters(timeout_min=args.slurm_timeout_min, cpus_per_task=1, slurm_partition=args.slurm_partition or None)
     else:
-        executor = submitit.LocalExecutor(folder=str(workdir / "submitit"))
+        executor = submitit.LocalExecutor(folder=str(Path(args.workdir) / "submitit"))
         executor.update_parameters(timeout_min=args.slurm_timeout_min)
     submitted = []
     for cmd, folder in todo:
