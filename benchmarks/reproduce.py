@@ -311,15 +311,15 @@ def launch_submitit(todo: list[tuple[list[str], str]], args: Args) -> None:
     else:
         executor = submitit.LocalExecutor(folder=str(Path(args.workdir) / "submitit"))
         executor.update_parameters(timeout_min=args.slurm_timeout_min)
-    submitted = []
-    for cmd, folder in todo:
-        Path(folder).mkdir(parents=True, exist_ok=True)  # the job clears an earlier attempt's logs as it starts (run_one)
-        job = executor.submit(submitit.helpers.CommandFunction([*JOB_COMMAND, str(Path(__file__).resolve().parent), str(Path(folder).resolve()), *cmd]))
-        (Path(folder) / "JOB").write_text(f"{job.job_id}\n")  # a later call asks Slurm whether it still runs
-        submitted.append((job, folder))
-    start, failed, folders = time.time(), [], {job.job_id: folder for job, folder in submitted}
+    submitted, failed = [], []
     poll = 10.0 if args.launcher == "slurm" else 0.5  # seconds between asking for the jobs' states
     try:
+        for cmd, folder in todo:
+            Path(folder).mkdir(parents=True, exist_ok=True)  # the job clears an earlier attempt's logs as it starts (run_one)
+            job = executor.submit(submitit.helpers.CommandFunction([*JOB_COMMAND, str(Path(__file__).resolve().parent), str(Path(folder).resolve()), *cmd]))
+            (Path(folder) / "JOB").write_text(f"{job.job_id}\n")  # a later call asks Slurm whether it still runs
+            submitted.append((job, folder))
+        start, folders = time.time(), {job.job_id: folder for job, folder in submitted}
         for i, job in enumerate(submitit.helpers.as_completed([job for job, _ in submitted], poll_frequency=poll), 1):
             folder, elapsed = folders[job.job_id], time.time() - start
             try:
@@ -334,7 +334,7 @@ def launch_submitit(todo: list[tuple[list[str], str]], args: Args) -> None:
             print(f"[{i}/{len(submitted)}] {folder} {outcome} (job {job.job_id}); elapsed {elapsed / 60:.1f} min, ETA {eta / 60:.1f} min", flush=True)
     except KeyboardInterrupt:
         if args.launcher == "slurm":  # the jobs are Slurm's now
-            raise SystemExit("reproduce: stopped waiting; the jobs go on in Slurm, each writing its DONE as it ends:"
+            raise SystemExit("reproduce: stopped waiting; the jobs submitted go on in Slurm, each writing its DONE as it ends:"
                              " run the same command again once they have, or scancel them") from None
         raise SystemExit("reproduce: interrupted; the same command trains again what has no DONE, from scratch") from None
     report_failures(failed, len(submitted))

@@ -134,7 +134,7 @@ def test_ctrl_c_while_waiting_for_slurm_says_the_jobs_go_on(tmp_path, monkeypatc
 
     monkeypatch.setattr(submitit.helpers, "as_completed", interrupted)
     args = reproduce.Args(envs=("Pendulum-v1",), methods=("sac",), seeds=(1,), preset="quick", launcher="slurm", workdir=str(tmp_path / "work"))
-    with pytest.raises(SystemExit, match=r"^reproduce: stopped waiting; the jobs go on in Slurm, each writing its DONE as it ends"):
+    with pytest.raises(SystemExit, match=r"^reproduce: stopped waiting; the jobs submitted go on in Slurm, each writing its DONE as it ends"):
         reproduce.launch(args)  # before: a KeyboardInterrupt traceback
     assert (reproduce.run_dir(tmp_path / "work", "Pendulum-v1", "sac", 1) / "DONE").exists()
 
