@@ -451,9 +451,13 @@ class ReplayBuffer:
     def __init__(self, capacity: int, obs_dim: int, act_dim: int, seed: int):
         self.capacity, self.size, self.pos = capacity, 0, 0
         self.fields = (obs_dim, act_dim, 1, obs_dim, 1)
-        self.storage = np.zeros((capacity, sum(self.fields)), dtype=np.float32)
+        try:
+            self.storage = np.zeros((capacity, sum(self.fields)), dtype=np.float32)
+            self.guidance = np.zeros(capacity, dtype=bool)  # fabricated and switch-penalty rows
+        except MemoryError:  # a --buffer-size with a zero too many, say
+            raise ValueError(f"a replay buffer of {capacity:,} transitions ({capacity * sum(self.fields) * 4 / 2**30:,.0f} GiB) does not fit in memory;"
+                             " pass a smaller --buffer-size") from None
         self.obs, self.actions, self.rewards, self.next_obs, self.terminations = np.split(self.storage, np.cumsum(self.fields)[:-1], axis=1)
-        self.guidance = np.zeros(capacity, dtype=bool)  # fabricated and switch-penalty rows
         self.rng = np.random.default_rng(seed)
 
     def add(self, obs, action, reward: float, next_obs, terminated: bool, guidance: bool = False) -> None:
@@ -760,6 +764,8 @@ if __name__ == "__main__":
             raise ValueError(f"JIRL needs a baseline and {args.env_id} has none; pass --baseline module:function")
         if args.guidance_steps is None:
             args.guidance_steps = args.total_timesteps // 2
+        # no more rows than the run stores: per step a real, a fabricated and a switch-penalty transition
+        rb = ReplayBuffer(min(args.buffer_size, 3 * args.total_timesteps), env.observation_space.shape[0], env.action_space.shape[0], args.seed)
     except BaseException as err:  # bad input, or a crash in a user's env: either way the claimed directory goes, and runs/ if now empty
         os.removedirs(f"runs/{run_name}")
         if isinstance(err, ValueError):
@@ -777,7 +783,6 @@ if __name__ == "__main__":
     sac = SoftActorCritic(obs_dim, act_dim, args)
     actor = sac.actor
 
-    rb = ReplayBuffer(args.buffer_size, obs_dim, act_dim, args.seed)
     gate = Gate(args.gate_k)
     rl_control = deque(maxlen=args.rl_control_window)  # who acted in the last steps, for the RL-control fraction
     control_switches = fabricated_transitions = 0

@@ -248,7 +248,11 @@ class ReplayBuffer:
     def __init__(self, capacity: int, obs_dim: int, act_dim: int, seed: int):
         self.capacity, self.size, self.pos = capacity, 0, 0
         self.fields = (obs_dim, act_dim, 1, obs_dim, 1)
-        self.storage = np.zeros((capacity, sum(self.fields)), dtype=np.float32)
+        try:
+            self.storage = np.zeros((capacity, sum(self.fields)), dtype=np.float32)
+        except MemoryError:  # a --buffer-size with a zero too many, say
+            raise ValueError(f"a replay buffer of {capacity:,} transitions ({capacity * sum(self.fields) * 4 / 2**30:,.0f} GiB) does not fit in memory;"
+                             " pass a smaller --buffer-size") from None
         self.obs, self.actions, self.rewards, self.next_obs, self.terminations = np.split(self.storage, np.cumsum(self.fields)[:-1], axis=1)
         self.rng = np.random.default_rng(seed)
 
@@ -543,6 +547,8 @@ if __name__ == "__main__":
         baseline = load_baseline(args.baseline, args.env_id) if args.regret_estimator != "off" else None
         if baseline is None and args.regret_estimator in ("paired", "unpaired"):
             raise ValueError(f"no baseline for {args.env_id}; pass --baseline module:function")
+        # no more rows than the run stores
+        rb = ReplayBuffer(min(args.buffer_size, args.total_timesteps), env.observation_space.shape[0], env.action_space.shape[0], args.seed)
     except BaseException as err:  # bad input, or a crash in a user's env: either way the claimed directory goes, and runs/ if now empty
         os.removedirs(f"runs/{run_name}")
         if isinstance(err, ValueError):
@@ -560,7 +566,6 @@ if __name__ == "__main__":
     sac = SoftActorCritic(obs_dim, act_dim, args)
     actor = sac.actor
 
-    rb = ReplayBuffer(args.buffer_size, obs_dim, act_dim, args.seed)
     rng = np.random.default_rng(args.seed)
 
     # Baseline measurement on the evaluation seeds, so it compares with eval/episodic_return

@@ -220,6 +220,19 @@ def test_a_file_named_runs_in_the_way_is_a_one_line_error(script, tmp_path):
     assert (tmp_path / "runs").read_text() == "a user's notes"
 
 
+@pytest.mark.parametrize("script", ["sac_continuous", "jirl_sac_continuous"])
+def test_a_replay_buffer_too_large_for_memory_is_a_one_line_error_and_one_larger_than_the_run_is_cut(script, tmp_path):
+    huge = str(10**13)  # 360 TB of Pendulum transitions, beyond any address space
+    out = run_script(ROOT / f"{script}.py", ["--env-id", "Pendulum-v1", "--total-timesteps", huge, "--buffer-size", huge], tmp_path)
+    assert out.returncode != 0 and "Traceback" not in out.stderr, out.stderr  # before: numpy's MemoryError traceback, and a run folder left
+    assert out.stderr.strip().splitlines()[-1].startswith(f"{script}: error: a replay buffer of 10,000,000,000,000 transitions (335,276 GiB)")
+    assert not (tmp_path / "runs").exists()
+    # a buffer larger than all the run can store is allocated no larger (the ring never wraps either way)
+    out = run_script(ROOT / f"{script}.py", ["--env-id", "Pendulum-v1", "--total-timesteps", "300", "--buffer-size", huge, "--learning-starts", "100",
+                                             "--batch-size", "16", "--hidden-size", "8", "--baseline-eval-episodes", "1"], tmp_path)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+
+
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_claim_run_dir_tries_again_when_runs_vanishes_in_between(script, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
