@@ -455,8 +455,7 @@ class ReplayBuffer:
             self.storage = np.zeros((capacity, sum(self.fields)), dtype=np.float32)
             self.guidance = np.zeros(capacity, dtype=bool)  # fabricated and switch-penalty rows
         except MemoryError:  # a --buffer-size with a zero too many, say
-            raise ValueError(f"a replay buffer of {capacity:,} transitions ({capacity * sum(self.fields) * 4 / 2**30:,.0f} GiB) does not fit in memory;"
-                             " pass a smaller --buffer-size") from None
+            raise ValueError(f"a replay buffer of {capacity:,} transitions ({capacity * sum(self.fields) * 4 / 2**30:,.0f} GiB) does not fit in memory") from None
         self.obs, self.actions, self.rewards, self.next_obs, self.terminations = np.split(self.storage, np.cumsum(self.fields)[:-1], axis=1)
         self.rng = np.random.default_rng(seed)
 

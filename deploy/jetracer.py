@@ -664,7 +664,10 @@ def train_holding(args: Train) -> dict:
     torch.manual_seed(args.seed)
     torch.set_num_threads(hp.torch_threads)
     sac = jirl.SoftActorCritic(OBS_SIZE, 2, hp)
-    rb = jirl.ReplayBuffer(hp.buffer_size, OBS_SIZE, 2, args.seed)
+    try:
+        rb = jirl.ReplayBuffer(hp.buffer_size, OBS_SIZE, 2, args.seed)
+    except ValueError as err:  # more than memory holds
+        raise SystemExit(f"train: error: --jirl.buffer-size {hp.buffer_size}: {err}") from None
     counters = dict(TRAIN_COUNTERS)
     if args.resume:
         try:

@@ -813,6 +813,15 @@ def test_a_resume_that_finds_no_training_state_leaves_no_lock_file_and_a_state_k
     assert torch.load(state, weights_only=True)["counters"]["step"] == 3 and not (tmp_path / "logs").exists()
 
 
+def test_a_replay_buffer_too_large_for_memory_ends_training_in_one_line_and_leaves_nothing(tmp_path):
+    hp = jetracer.car_jirl_defaults()
+    hp.buffer_size = 10**13  # a zero or six too many: beyond any address space
+    with pytest.raises(SystemExit) as raised:  # before: numpy's MemoryError traceback
+        jetracer.train(jetracer.Train(jirl=hp, checkpoint=str(tmp_path / "train.pt"), log_dir=str(tmp_path / "logs")))
+    assert str(raised.value).startswith("train: error: --jirl.buffer-size 10000000000000: a replay buffer of 10,000,000,000,000 transitions (")
+    assert str(raised.value).endswith(" GiB) does not fit in memory") and list(tmp_path.iterdir()) == []
+
+
 def test_a_save_writes_through_a_temporary_file_of_its_own(tmp_path):
     hp = jetracer.car_jirl_defaults()
     hp.hidden_size = 8
