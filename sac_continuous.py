@@ -57,7 +57,7 @@ class Args:
     total_timesteps: int = 20_000
     """total timesteps of the experiment"""
     buffer_size: int = 1_000_000
-    """the replay memory buffer size"""
+    """the replay memory buffer size (no more is allocated than the run can fill)"""
     gamma: float = 0.99
     """the discount factor gamma"""
     tau: float = 0.005
