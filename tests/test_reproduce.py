@@ -110,7 +110,7 @@ def test_submitit_local_executor(tmp_path):
 
 def test_submitted_runs_are_reported_as_they_end(tmp_path, monkeypatch, capsys):
     def command(preset, env, method, seed, steps=None):  # seed 1 trains longest
-        return [sys.executable, "-c", f"import time; time.sleep({3 if seed == 1 else 0})", str(seed)]
+        return [sys.executable, "-c", f"import time; time.sleep({6 if seed == 1 else 0})", str(seed)]
 
     monkeypatch.setattr(reproduce, "command", command)
     args = reproduce.Args(envs=("Pendulum-v1",), methods=("sac",), seeds=(1, 2), preset="quick", launcher="submitit-local", workdir=str(tmp_path / "work"))
