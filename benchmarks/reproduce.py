@@ -311,17 +311,17 @@ def launch_submitit(todo: list[tuple[list[str], str]], args: Args) -> None:
     else:
         executor = submitit.LocalExecutor(folder=str(Path(args.workdir) / "submitit"))
         executor.update_parameters(timeout_min=args.slurm_timeout_min)
-    submitted, failed = [], []
+    folders, failed = {}, []  # the run's folder of each submitted job
     poll = 10.0 if args.launcher == "slurm" else 0.5  # seconds between asking for the jobs' states
     try:
         for cmd, folder in todo:
             Path(folder).mkdir(parents=True, exist_ok=True)  # the job clears an earlier attempt's logs as it starts (run_one)
             job = executor.submit(submitit.helpers.CommandFunction([*JOB_COMMAND, str(Path(__file__).resolve().parent), str(Path(folder).resolve()), *cmd]))
             (Path(folder) / "JOB").write_text(f"{job.job_id}\n")  # a later call asks Slurm whether it still runs
-            submitted.append((job, folder))
-        start, folders = time.time(), {job.job_id: folder for job, folder in submitted}
-        for i, job in enumerate(submitit.helpers.as_completed([job for job, _ in submitted], poll_frequency=poll), 1):
-            folder, elapsed = folders[job.job_id], time.time() - start
+            folders[job] = folder
+        start = time.time()
+        for i, job in enumerate(submitit.helpers.as_completed(list(folders), poll_frequency=poll), 1):
+            folder, elapsed = folders[job], time.time() - start
             try:
                 job.result()
                 outcome = "done"
@@ -330,14 +330,14 @@ def launch_submitit(todo: list[tuple[list[str], str]], args: Args) -> None:
                     log.write(f"\n{err}\n")
                 failed.append(folder)
                 outcome = "FAILED"
-            eta = elapsed / i * (len(submitted) - i)
-            print(f"[{i}/{len(submitted)}] {folder} {outcome} (job {job.job_id}); elapsed {elapsed / 60:.1f} min, ETA {eta / 60:.1f} min", flush=True)
+            eta = elapsed / i * (len(folders) - i)
+            print(f"[{i}/{len(folders)}] {folder} {outcome} (job {job.job_id}); elapsed {elapsed / 60:.1f} min, ETA {eta / 60:.1f} min", flush=True)
     except KeyboardInterrupt:
         if args.launcher == "slurm":  # the jobs are Slurm's now
             raise SystemExit("reproduce: stopped waiting; the jobs submitted go on in Slurm, each writing its DONE as it ends:"
                              " run the same command again once they have, or scancel them") from None
         raise SystemExit("reproduce: interrupted; the same command trains again what has no DONE, from scratch") from None
-    report_failures(failed, len(submitted))
+    report_failures(failed, len(folders))
 
 
 # -- reading and reporting ----------------------------------------------------------------------
