@@ -22,6 +22,8 @@ from pathlib import Path
 
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+from side_by_side import stop_children_on_sigterm
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -101,4 +103,5 @@ def mean_ci(values: list[float]) -> str:
 
 
 if __name__ == "__main__":
+    stop_children_on_sigterm()
     main()

@@ -17,7 +17,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from side_by_side import checked
+from side_by_side import checked, stop_children_on_sigterm
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -94,4 +94,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    stop_children_on_sigterm()
     main()

@@ -1,11 +1,13 @@
 """Helpers of the benchmarks: timing implementations side by side (rotating order, fresh processes,
-ratios per repetition), an earlier revision of a script, a script loaded as a module, a saved policy."""
+ratios per repetition), an earlier revision of a script, a script loaded as a module, a saved policy,
+and SIGTERM ending the process a benchmark is waiting for."""
 
 from __future__ import annotations
 
 import argparse
 import importlib.util
 import re
+import signal
 import statistics
 import subprocess
 import sys
@@ -16,6 +18,18 @@ from typing import Callable, Sequence
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
+
+
+def stop_children_on_sigterm() -> None:
+    """Make `kill` (SIGTERM) end the benchmark's child process too. SIGTERM reaches the benchmark
+    alone, and Python's default ends it at once, leaving the training it waits for running on (for
+    hours, on a core another job needs). Raised as SystemExit, it makes subprocess.run kill the
+    child on its way out."""
+
+    def terminated(signum: int, frame: object) -> None:
+        raise SystemExit(f"{Path(sys.argv[0]).name}: terminated; the process it was waiting for was killed")
+
+    signal.signal(signal.SIGTERM, terminated)
 
 
 def timed(cmd: list[str], workdir: Path) -> tuple[float, float]:

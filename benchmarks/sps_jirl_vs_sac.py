@@ -13,7 +13,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from side_by_side import compare
+from side_by_side import compare, stop_children_on_sigterm
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -46,4 +46,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    stop_children_on_sigterm()
     main()

@@ -15,7 +15,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from side_by_side import compare, require
+from side_by_side import compare, require, stop_children_on_sigterm
 
 ROOT = Path(__file__).resolve().parent.parent
 # The tuned settings our scripts resolve for each env (see README), spelled for SB3 with one env.
@@ -73,4 +73,5 @@ def main() -> None:
         print(f"| {algo} | {row}", flush=True)
 
 if __name__ == "__main__":
+    stop_children_on_sigterm()
     main()

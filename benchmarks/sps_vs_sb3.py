@@ -19,7 +19,7 @@ import sys
 import time
 from pathlib import Path
 
-from side_by_side import measure, ratio_cell, require, script_at
+from side_by_side import measure, ratio_cell, require, script_at, stop_children_on_sigterm
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -97,4 +97,5 @@ def main() -> None:
             print(row + f" {args.repeats} |", flush=True)
 
 if __name__ == "__main__":
+    stop_children_on_sigterm()
     main()

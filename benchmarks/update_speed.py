@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from side_by_side import checked, load_module, require, script_at
+from side_by_side import checked, load_module, require, script_at, stop_children_on_sigterm
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -130,4 +130,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    stop_children_on_sigterm()
     main()

@@ -1,5 +1,5 @@
-"""benchmarks/regret_floor.py: the paired regret of a fixed policy, against numbers computed here; and the
-benchmark tools refusing counts out of range."""
+"""benchmarks/regret_floor.py: the paired regret of a fixed policy, against numbers computed here; the
+benchmark tools refusing counts out of range, and ending their child process on SIGTERM."""
 
 import sys
 
@@ -153,3 +153,37 @@ def test_relu_variants_stops_at_a_failed_measurement_showing_why(monkeypatch, tm
     with pytest.raises(SystemExit, match="exited with 1:\nTraceback ...\nRuntimeError: the variant broke"):
         relu_variants.main()
     assert (tmp_path / "sac_copy.py").exists() and (tmp_path / "sac_fused.py").exists()
+
+
+def test_sigterm_ends_the_training_a_benchmark_waits_for(tmp_path):
+    """`kill` reaches the benchmark alone; the training it started must not run on unseen."""
+    import os
+    import signal
+    import subprocess
+    import time
+
+    pid_file = tmp_path / "training.pid"
+    stand_in = tmp_path / "training.py"  # stands for an algorithm script: records its pid, then trains a minute
+    stand_in.write_text(f"import os, time\nopen({str(pid_file)!r}, 'w').write(str(os.getpid()))\ntime.sleep(60)\n")
+    err_file = tmp_path / "stderr.txt"  # a file, not a pipe: a training left running would hold a pipe open
+    with err_file.open("w") as err:
+        bench = subprocess.Popen(
+            [sys.executable, str(ROOT / "benchmarks" / "learning.py"), "--script", str(stand_in), "--seeds", "1", "--workdir", str(tmp_path / "work")],
+            stderr=err,
+        )  # fmt: skip
+    deadline = time.monotonic() + 30
+    while not (pid_file.exists() and pid_file.read_text()) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    training = int(pid_file.read_text())
+    try:
+        bench.send_signal(signal.SIGTERM)
+        bench.wait(timeout=10)
+        time.sleep(0.5)
+        with pytest.raises(ProcessLookupError):
+            os.kill(training, 0)
+        assert bench.returncode == 1 and "learning.py: terminated; the process it was waiting for was killed" in err_file.read_text()
+    finally:
+        try:
+            os.kill(training, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
