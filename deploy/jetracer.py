@@ -9,7 +9,7 @@ The car is reached through the serial protocol of docs/serial_protocol.md (`depl
 so every mode runs headless through the real protocol (sim-in-the-loop). Safety on the host: steering
 clamped and rate-limited, throttle held in its window, a NaN action sends STOP, a frame older than
 two control periods stops the car and ends the episode, e-stop on the gamepad button, on losing the
-gamepad and on Ctrl-C/SIGTERM; the controller's own watchdog stops the car if this process dies.
+gamepad and on Ctrl-C, SIGTERM or a hang-up; the controller's own watchdog stops the car if this process dies.
 The run ends (`train` saves first) after 2 s without a fresh frame, or when the controller is no
 longer armed: only a person re-arms it.
 Runs on the car's Python 3.8 (JetPack 5) and newer.
@@ -226,6 +226,14 @@ def claim_log_dir(log_dir: str, name: str) -> str:
             path = os.path.join(log_dir, f"{name}_{n}")
 
 
+def stop_signals() -> List[int]:
+    """The signals that stop the car: Ctrl-C, SIGTERM, and SIGHUP (the ssh session to the car dropped, or
+    its terminal closed), unless the run ignores it (started with nohup: it goes on after a hang-up)."""
+    hangup = getattr(signal, "SIGHUP", None)  # none on Windows
+    keep_on = hangup is None or signal.getsignal(hangup) is signal.SIG_IGN
+    return [signal.SIGINT, signal.SIGTERM] + ([] if keep_on else [hangup])
+
+
 class CarSession:
     """The link, the camera (and the simulator behind both in sim-in-the-loop), safety, timing and logs."""
 
@@ -235,8 +243,8 @@ class CarSession:
         self.args, self.mode, self.period = args, mode, 1.0 / args.control_hz
         self.stop_requested = False
         self.estop_unsent = False  # set by the signal handler when the link is down; close() says it
-        # Ctrl-C and SIGTERM e-stop the car while the session is open; close() puts the previous handlers back
-        self._previous_handlers = {sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+        # Ctrl-C, SIGTERM and SIGHUP e-stop the car while the session is open; close() puts the previous handlers back
+        self._previous_handlers = {sig: signal.signal(sig, self._on_signal) for sig in stop_signals()}
         self.mapping = ActionMapping(min_throttle=args.min_throttle, max_throttle=args.max_throttle)
         self.safety = SafetyFilter(self.mapping, args.max_steering_rate, self.period)
         self.world = self.camera = self.gamepad = self.writer = None

@@ -557,6 +557,47 @@ def test_sigterm_stops_a_drive_cleanly(tmp_path):
     assert 0 < steps < 2000  # stopped early, and still reported
 
 
+def started_session(command: list, tmp_path, hangup) -> subprocess.Popen:
+    """`python -m deploy.jetracer COMMAND`, with SIGHUP's disposition `hangup`, once its session is up."""
+    import signal
+    import time
+
+    process = subprocess.Popen([sys.executable, "-m", "deploy.jetracer", *command, "--log-dir", str(tmp_path)], cwd=ROOT,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               preexec_fn=lambda: signal.signal(signal.SIGHUP, hangup))  # fmt: skip
+    deadline = time.monotonic() + 60
+    while not list(tmp_path.glob(f"{command[0]}__*")) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    time.sleep(1.0)
+    return process
+
+
+def test_a_hang_up_stops_training_and_saves_the_state_where_it_stopped(tmp_path):
+    """A dropped ssh session sends SIGHUP: the car is e-stopped and the state saved, as on SIGTERM; it
+    used to end the process at once, with the steps since the last pause lost."""
+    import signal
+
+    state = tmp_path / "t.pt"
+    process = started_session(["train", "--total-steps", "3000", "--train-every", "200", "--gradient-steps", "2",
+                               "--checkpoint", str(state), *FAST], tmp_path, signal.SIG_DFL)  # fmt: skip
+    process.send_signal(signal.SIGHUP)
+    stdout, stderr = process.communicate(timeout=60)
+    assert process.returncode == 0, stderr
+    steps = int(stdout.split("train: step ")[1].split(",")[0])
+    assert 0 < steps < 3000
+    assert torch.load(state, weights_only=False)["counters"]["step"] == steps  # saved at the stop, not at the last pause
+
+
+def test_a_run_started_with_nohup_drives_on_after_a_hang_up(tmp_path):
+    import signal
+
+    process = started_session(["baseline", "--steps", "60"], tmp_path, signal.SIG_IGN)
+    process.send_signal(signal.SIGHUP)
+    stdout, stderr = process.communicate(timeout=60)
+    assert process.returncode == 0, stderr
+    assert "baseline: 60 steps" in stdout
+
+
 def test_train_refuses_the_episode_based_schedule(tmp_path):
     assert jetracer.car_jirl_defaults().guidance_schedule == "geometric"
     args = ["train", "--total-steps", "10", "--jirl.guidance-schedule", "earned", "--checkpoint", str(tmp_path / "t.pt"), "--log-dir", str(tmp_path)]
@@ -629,7 +670,7 @@ def test_a_session_puts_the_signal_handlers_back_when_it_closes(tmp_path):
     def mine(*_):
         pass
 
-    previous = {sig: signal.signal(sig, mine) for sig in (signal.SIGINT, signal.SIGTERM)}
+    previous = {sig: signal.signal(sig, mine) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     try:
         jetracer.baseline(jetracer.Baseline(steps=5, log_dir=str(tmp_path)))
         with pytest.raises(SystemExit, match="cannot open the motor controller"):
