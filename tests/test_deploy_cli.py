@@ -1,8 +1,10 @@
 """deploy/jetracer.py: safety, and the run, baseline and train modes headless against the simulated car."""
 
 import re
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -348,8 +350,6 @@ def at_period(monkeypatch, n: int, event: Callable) -> None:
 
 
 def test_training_ends_and_keeps_its_state_when_the_watchdog_trips(tmp_path, monkeypatch, capsys):
-    import time
-
     # a host stall longer than the watchdog: the controller disarms itself
     at_period(monkeypatch, 50, lambda session: session.link._port.controller.poll(time.monotonic() + 10.0))
     state = tmp_path / "train.pt"
@@ -362,7 +362,6 @@ def test_training_ends_and_keeps_its_state_when_the_watchdog_trips(tmp_path, mon
 
 def test_ctrl_c_while_the_link_is_down_ends_the_training_cleanly_and_keeps_its_state(tmp_path, monkeypatch, capsys):
     import os
-    import signal
 
     def link_down_then_ctrl_c(session):
         def unwritable(*_):
@@ -540,28 +539,8 @@ def test_a_checkpoint_that_cannot_be_written_mid_run_stops_the_car(tmp_path, mon
     assert controllers[0].throttle == 0.0 and controllers[0].estop_latched  # the session was closed: STOP, ESTOP
 
 
-def test_sigterm_stops_a_drive_cleanly(tmp_path):
-    import signal
-    import time
-
-    process = subprocess.Popen([sys.executable, "-m", "deploy.jetracer", "baseline", "--steps", "2000", "--log-dir", str(tmp_path)],
-                               cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
-    deadline = time.monotonic() + 60
-    while not list(tmp_path.glob("baseline__*")) and time.monotonic() < deadline:  # the session is up
-        time.sleep(0.1)
-    time.sleep(1.0)
-    process.send_signal(signal.SIGTERM)
-    stdout, stderr = process.communicate(timeout=30)
-    assert process.returncode == 0, stderr
-    steps = int(stdout.split("baseline: ")[1].split(" steps")[0])
-    assert 0 < steps < 2000  # stopped early, and still reported
-
-
-def started_session(command: list, tmp_path, hangup) -> subprocess.Popen:
+def started_session(command: list, tmp_path, hangup=signal.SIG_DFL) -> subprocess.Popen:
     """`python -m deploy.jetracer COMMAND`, with SIGHUP's disposition `hangup`, once its session is up."""
-    import signal
-    import time
-
     process = subprocess.Popen([sys.executable, "-m", "deploy.jetracer", *command, "--log-dir", str(tmp_path)], cwd=ROOT,
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                preexec_fn=lambda: signal.signal(signal.SIGHUP, hangup))  # fmt: skip
@@ -572,11 +551,18 @@ def started_session(command: list, tmp_path, hangup) -> subprocess.Popen:
     return process
 
 
+def test_sigterm_stops_a_drive_cleanly(tmp_path):
+    process = started_session(["baseline", "--steps", "2000"], tmp_path)
+    process.send_signal(signal.SIGTERM)
+    stdout, stderr = process.communicate(timeout=30)
+    assert process.returncode == 0, stderr
+    steps = int(stdout.split("baseline: ")[1].split(" steps")[0])
+    assert 0 < steps < 2000  # stopped early, and still reported
+
+
 def test_a_hang_up_stops_training_and_saves_the_state_where_it_stopped(tmp_path):
     """A dropped ssh session sends SIGHUP: the car is e-stopped and the state saved, as on SIGTERM; it
     used to end the process at once, with the steps since the last pause lost."""
-    import signal
-
     state = tmp_path / "t.pt"
     process = started_session(["train", "--total-steps", "3000", "--train-every", "200", "--gradient-steps", "2",
                                "--checkpoint", str(state), *FAST], tmp_path, signal.SIG_DFL)  # fmt: skip
@@ -589,8 +575,6 @@ def test_a_hang_up_stops_training_and_saves_the_state_where_it_stopped(tmp_path)
 
 
 def test_a_run_started_with_nohup_drives_on_after_a_hang_up(tmp_path):
-    import signal
-
     process = started_session(["baseline", "--steps", "60"], tmp_path, signal.SIG_IGN)
     process.send_signal(signal.SIGHUP)
     stdout, stderr = process.communicate(timeout=60)
@@ -665,8 +649,6 @@ def test_missing_hardware_is_a_one_line_error_before_the_car_is_armed(tmp_path, 
 
 
 def test_a_session_puts_the_signal_handlers_back_when_it_closes(tmp_path):
-    import signal
-
     def mine(*_):
         pass
 
