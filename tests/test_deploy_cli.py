@@ -571,7 +571,7 @@ def test_a_hang_up_stops_training_and_saves_the_state_where_it_stopped(tmp_path)
     assert process.returncode == 0, stderr
     steps = int(stdout.split("train: step ")[1].split(",")[0])
     assert 0 < steps < 3000
-    assert torch.load(state, weights_only=False)["counters"]["step"] == steps  # saved at the stop, not at the last pause
+    assert torch.load(state, weights_only=True)["counters"]["step"] == steps  # saved at the stop, not at the last pause
 
 
 def test_a_run_started_with_nohup_drives_on_after_a_hang_up(tmp_path):
