@@ -4,6 +4,8 @@ A researcher reruns a seed to check a result or to debug it, and the README quot
 from a fresh clone. A random draw that the seed does not reach (numpy's global generator, an unseeded
 torch call, a set iterated in hash order) breaks that silently; it fails here."""
 
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +13,7 @@ import pytest
 import torch
 
 from conftest import ROOT
-from test_sac_script import TINY, run_script, scalars
+from test_sac_script import TINY, scalars
 
 TIMING = {"charts/SPS", "charts/baseline_rollout_seconds"}  # wall-clock figures, never equal
 SHORT = {
@@ -24,14 +26,22 @@ SHORT = {
 }  # fmt: skip
 
 
-def run(name: str, seed: int, cwd: Path) -> tuple[dict[str, list[float]], dict[str, torch.Tensor]]:
-    cwd.mkdir()
-    args = [*SHORT[name], "--seed", str(seed), "--save-model", "--eval-episodes", "2"]
-    out = run_script(ROOT / f"{name}.py", args, cwd)
-    assert out.returncode == 0, out.stderr
-    (run_dir,) = (cwd / "runs").iterdir()
-    (model,) = [p for p in run_dir.glob("*.cleanrl_model") if not p.name.endswith("_cloned.cleanrl_model")]
-    return scalars(run_dir), tensors(torch.load(model, weights_only=True))
+def runs(name: str, seeds: list[int], tmp_path: Path) -> list[tuple[dict[str, list[float]], dict[str, torch.Tensor]]]:
+    """Train with each seed, side by side (each in its own folder), and read back what each logged and saved."""
+    folders = [tmp_path / f"run{i}" for i in range(len(seeds))]
+    started = []
+    for seed, cwd in zip(seeds, folders):
+        cwd.mkdir()
+        args = [*SHORT[name], "--seed", str(seed), "--save-model", "--eval-episodes", "2"]
+        started.append(subprocess.Popen([sys.executable, str(ROOT / f"{name}.py"), *args], cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True))
+    results = []
+    for process, cwd in zip(started, folders):
+        _, stderr = process.communicate()
+        assert process.returncode == 0, stderr
+        (run_dir,) = (cwd / "runs").iterdir()
+        (model,) = [p for p in run_dir.glob("*.cleanrl_model") if not p.name.endswith("_cloned.cleanrl_model")]
+        results.append((scalars(run_dir), tensors(torch.load(model, weights_only=True))))
+    return results
 
 
 def tensors(tree: dict, prefix: str = "") -> dict[str, torch.Tensor]:
@@ -47,9 +57,7 @@ def tensors(tree: dict, prefix: str = "") -> dict[str, torch.Tensor]:
 
 @pytest.mark.parametrize("name", list(SHORT))
 def test_the_same_seed_gives_the_same_run(name, tmp_path):
-    logged, weights = run(name, 3, tmp_path / "first")
-    again, weights_again = run(name, 3, tmp_path / "again")
-    other, weights_other = run(name, 4, tmp_path / "other")
+    (logged, weights), (again, weights_again), (other, weights_other) = runs(name, [3, 3, 4], tmp_path)
 
     assert logged.keys() == again.keys()
     assert TIMING & logged.keys(), "the timing tags this test skips are still the ones logged"
