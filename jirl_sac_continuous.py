@@ -642,9 +642,25 @@ class SoftActorCritic:
         self.alpha = self.log_alpha.exp().detach()
 
 
+def write_checkpoint(path: str, checkpoint: dict) -> None:
+    """torch.save(checkpoint, path). A write that fails (a full disk) raises its OSError and leaves no
+    file: half a checkpoint would pass for one until it is loaded."""
+    file = open(path, "wb")  # an OSError here (no such folder, no permission) changes nothing
+    try:
+        with file:
+            torch.save(checkpoint, file)
+    except BaseException as err:
+        if os.path.isfile(path):  # not a device such as /dev/null
+            os.remove(path)
+        if isinstance(err, RuntimeError) and isinstance(err.__context__, OSError):
+            raise err.__context__ from None  # torch reports the OSError as its zip writer's "unexpected pos"
+        raise
+
+
 def save_checkpoint(path: str, env_id: str, env: gym.Env, actor: Actor, qf: SoftQNetwork, args: Args) -> None:
     """Everything needed to rebuild and check the actor: weights, spaces, hyperparameters."""
-    torch.save(
+    write_checkpoint(
+        path,
         {
             "format": CHECKPOINT_FORMAT,
             "env_id": env_id,
@@ -656,7 +672,6 @@ def save_checkpoint(path: str, env_id: str, env: gym.Env, actor: Actor, qf: Soft
             "qf": qf.state_dict(),
             "args": vars(args),
         },
-        path,
     )
 
 
@@ -943,7 +958,10 @@ if __name__ == "__main__":
 
     if args.save_model:
         model_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-        save_checkpoint(model_path, args.env_id, env, sac.actor, sac.qf, args)
+        try:
+            save_checkpoint(model_path, args.env_id, env, sac.actor, sac.qf, args)
+        except OSError as err:  # a full disk: the run's weights are lost; say why in one line
+            raise SystemExit(f"{args.exp_name}: error: cannot save the model to {model_path}: {err.strerror or err}") from None
         print(f"model saved to {model_path}")
         try:
             episodic_returns = evaluate(model_path, args.env_id, args.eval_episodes, args.seed)

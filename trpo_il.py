@@ -514,9 +514,25 @@ def imitate(agent: Agent, obs: np.ndarray, actions: np.ndarray, returns: np.ndar
     return {"epochs": epoch, "action_mse": best_mse, "value_loss": value_loss.item()}
 
 
+def write_checkpoint(path: str, checkpoint: dict) -> None:
+    """torch.save(checkpoint, path). A write that fails (a full disk) raises its OSError and leaves no
+    file: half a checkpoint would pass for one until it is loaded."""
+    file = open(path, "wb")  # an OSError here (no such folder, no permission) changes nothing
+    try:
+        with file:
+            torch.save(checkpoint, file)
+    except BaseException as err:
+        if os.path.isfile(path):  # not a device such as /dev/null
+            os.remove(path)
+        if isinstance(err, RuntimeError) and isinstance(err.__context__, OSError):
+            raise err.__context__ from None  # torch reports the OSError as its zip writer's "unexpected pos"
+        raise
+
+
 def save_checkpoint(path: str, env_id: str, env: gym.Env, agent: Agent, obs_rms: Optional[RunningMeanStd], args: Args) -> None:
     """Weights, observation statistics, spaces and hyperparameters."""
-    torch.save(
+    write_checkpoint(
+        path,
         {
             "format": CHECKPOINT_FORMAT,
             "env_id": env_id,
@@ -529,7 +545,6 @@ def save_checkpoint(path: str, env_id: str, env: gym.Env, agent: Agent, obs_rms:
             "obs_var": None if obs_rms is None else torch.from_numpy(obs_rms.var),
             "args": vars(args),
         },
-        path,
     )
 
 
@@ -686,7 +701,10 @@ if __name__ == "__main__":
     if args.save_model:  # the cloned policy, evaluated like the final one
         os.makedirs(f"runs/{run_name}", exist_ok=True)
         il_path = f"runs/{run_name}/{args.exp_name}_cloned.cleanrl_model"
-        save_checkpoint(il_path, args.env_id, env, agent, obs_rms, args)
+        try:
+            save_checkpoint(il_path, args.env_id, env, agent, obs_rms, args)
+        except OSError as err:  # a full disk: the run's weights are lost; say why in one line
+            raise SystemExit(f"{args.exp_name}: error: cannot save the model to {il_path}: {err.strerror or err}") from None
         il_returns = evaluate(il_path, args.env_id, args.eval_episodes, args.seed)
         writer.add_scalar("il/eval_return", float(np.mean(il_returns)), 0)
         print(f"cloned policy: mean return {np.mean(il_returns):.1f}")
@@ -831,7 +849,10 @@ if __name__ == "__main__":
 
     if args.save_model:
         model_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
-        save_checkpoint(model_path, args.env_id, env, agent, obs_rms, args)
+        try:
+            save_checkpoint(model_path, args.env_id, env, agent, obs_rms, args)
+        except OSError as err:  # a full disk: the run's weights are lost; say why in one line
+            raise SystemExit(f"{args.exp_name}: error: cannot save the model to {model_path}: {err.strerror or err}") from None
         print(f"model saved to {model_path}")
         try:
             episodic_returns = evaluate(model_path, args.env_id, args.eval_episodes, args.seed)

@@ -534,7 +534,7 @@ def save_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
         "hidden_size": args.jirl.hidden_size,
     }
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    write_atomically(path, lambda tmp: torch.save(state, tmp), create)
+    write_atomically(path, lambda tmp: jirl.write_checkpoint(tmp, state), create)
     write_atomically(policy_path(path), lambda tmp: jirl.save_checkpoint(tmp, "JetRacer", CarSpaces(), sac.actor, sac.qf, args.jirl))
 
 

@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from conftest import ROOT
+from test_sac_script import fill_the_disk_for
 
 jetracer = pytest.importorskip("deploy.jetracer")
 from envs.car_interface import ActionMapping  # noqa: E402
@@ -520,23 +521,24 @@ def record_closed_controllers(monkeypatch) -> list:
 
 
 def test_a_checkpoint_that_cannot_be_written_mid_run_stops_the_car(tmp_path, monkeypatch):
-    import errno
-
     saves, real_save = [], jetracer.save_training_state
 
     def save(path, sac, rb, counters, args, create=False):
         saves.append(counters["step"])
-        if len(saves) == 3:
-            raise OSError(errno.ENOSPC, "No space left on device")
+        if len(saves) == 3:  # the disk fills up as the state is written (its policy goes in another file)
+            fill_the_disk_for(monkeypatch, r"t\.pt\.\d+\.tmp")
         real_save(path, sac, rb, counters, args, create)
 
     monkeypatch.setattr(jetracer, "save_training_state", save)
     controllers = record_closed_controllers(monkeypatch)
-    with pytest.raises(SystemExit, match="train: error: cannot write --checkpoint .*No space left on device"):
+    state = tmp_path / "t.pt"
+    with pytest.raises(SystemExit, match=r"^train: error: cannot write --checkpoint .*t\.pt: \[Errno 28\] No space left on device$"):
         jetracer.main(["train", "--total-steps", "500", "--train-every", "40", "--gradient-steps", "2",
-                       "--checkpoint", str(tmp_path / "t.pt"), "--log-dir", str(tmp_path), *FAST])  # fmt: skip
+                       "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST])  # fmt: skip
     assert saves == [0, 40, 80]  # before arming, then at every pause until the disk was full
     assert controllers[0].throttle == 0.0 and controllers[0].estop_latched  # the session was closed: STOP, ESTOP
+    assert torch.load(state, weights_only=True)["counters"]["step"] == 40  # the last state that fitted, whole
+    assert not list(tmp_path.glob("*.tmp"))
 
 
 def started_session(command: list, tmp_path, hangup=signal.SIG_DFL) -> subprocess.Popen:

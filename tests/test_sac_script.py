@@ -1,6 +1,10 @@
 """sac_continuous.py end to end: truncation handling, logging, checkpoints, errors, copyability."""
 
+import builtins
+import errno
+import io
 import os
+import re
 import runpy
 import shutil
 import subprocess
@@ -356,6 +360,59 @@ def test_a_run_closes_every_env_it_opens(tmp_path, monkeypatch, script, regret):
         assert len(opened) >= 3 and any(env is g["shadow_env"].unwrapped for env in opened)
     unclosed = [env for env in opened if not any(env is c for c in closed)]
     assert not unclosed, f"{len(unclosed)} of {len(opened)} envs left open"
+
+
+class FullDisk(io.FileIO):
+    """A file on a disk with `room` bytes left: the write that reaches past it stores what fits, then
+    raises ENOSPC, as the OS does."""
+
+    room = 4096
+
+    def write(self, data) -> int:
+        data = memoryview(data).cast("B")
+        if self.tell() + len(data) > self.room:
+            super().write(data[: max(0, self.room - self.tell())])
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return super().write(data)
+
+
+def fill_the_disk_for(monkeypatch, name: str) -> None:
+    """open(path, "wb") of a file whose name matches the regular expression gives a FullDisk; every other
+    open is the real one."""
+    real_open = builtins.open
+
+    def open_(file, mode="r", *args, **kwargs):
+        if re.fullmatch(name, os.path.basename(file)) and mode == "wb":
+            return FullDisk(file, "wb")
+        return real_open(file, mode, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "open", open_)
+
+
+def test_a_checkpoint_the_disk_cannot_hold_raises_its_os_error_and_leaves_no_file(tmp_path, monkeypatch, sac):
+    path = tmp_path / "model.cleanrl_model"
+    fill_the_disk_for(monkeypatch, r".*\.cleanrl_model")
+    with pytest.raises(OSError) as raised:  # torch.save itself would raise RuntimeError("... unexpected pos ...")
+        sac.write_checkpoint(str(path), {"weights": torch.zeros(10_000)})
+    assert raised.value.errno == errno.ENOSPC
+    assert not path.exists(), "half a checkpoint was left behind"
+    monkeypatch.undo()
+    sac.write_checkpoint(str(path), {"weights": torch.ones(3)})  # the same call where there is room
+    assert torch.equal(torch.load(path, weights_only=True)["weights"], torch.ones(3))
+
+
+@pytest.mark.parametrize("script", list(SHORT_RUNS))
+def test_a_model_the_disk_cannot_hold_is_a_one_line_error(tmp_path, monkeypatch, script):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", *SHORT_RUNS[script], "--baseline-eval-episodes", "1", "--save-model"])
+    fill_the_disk_for(monkeypatch, r".*\.cleanrl_model")
+    with pytest.raises(SystemExit) as raised:
+        runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    model = "_cloned.cleanrl_model" if script in ("ppo_il", "trpo_il") else ".cleanrl_model"  # their first save
+    expected = f"{script}: error: cannot save the model to runs/{run_dir.name}/{script}{model}: No space left on device"
+    assert str(raised.value.code) == expected
+    assert not list(run_dir.glob("*.cleanrl_model"))
 
 
 def test_the_readmes_saved_policy_snippet_runs(tmp_path, sac):
