@@ -960,7 +960,7 @@ if __name__ == "__main__":
         model_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
         try:
             save_checkpoint(model_path, args.env_id, env, sac.actor, sac.qf, args)
-        except OSError as err:  # a full disk: the run's weights are lost; say why in one line
+        except OSError as err:  # a full disk: say so in one line, not as torch's traceback
             raise SystemExit(f"{args.exp_name}: error: cannot save the model to {model_path}: {err.strerror or err}") from None
         print(f"model saved to {model_path}")
         try:

@@ -635,7 +635,7 @@ if __name__ == "__main__":
         il_path = f"runs/{run_name}/{args.exp_name}_cloned.cleanrl_model"
         try:
             save_checkpoint(il_path, args.env_id, env, agent, obs_rms, args)
-        except OSError as err:  # a full disk: the run's weights are lost; say why in one line
+        except OSError as err:  # a full disk: say so in one line, not as torch's traceback
             raise SystemExit(f"{args.exp_name}: error: cannot save the model to {il_path}: {err.strerror or err}") from None
         il_returns = evaluate(il_path, args.env_id, args.eval_episodes, args.seed)
         writer.add_scalar("il/eval_return", float(np.mean(il_returns)), 0)
@@ -816,7 +816,7 @@ if __name__ == "__main__":
         model_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
         try:
             save_checkpoint(model_path, args.env_id, env, agent, obs_rms, args)
-        except OSError as err:  # a full disk: the run's weights are lost; say why in one line
+        except OSError as err:  # a full disk: say so in one line, not as torch's traceback
             raise SystemExit(f"{args.exp_name}: error: cannot save the model to {model_path}: {err.strerror or err}") from None
         print(f"model saved to {model_path}")
         try:

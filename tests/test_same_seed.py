@@ -60,7 +60,6 @@ def test_the_same_seed_gives_the_same_run(name, tmp_path):
     (logged, weights), (again, weights_again), (other, weights_other) = runs(name, [3, 3, 4], tmp_path)
 
     assert logged.keys() == again.keys()
-    assert TIMING & logged.keys(), "the timing tags this test skips are still the ones logged"
     for tag in logged.keys() - TIMING:
         assert logged[tag] == again[tag], tag  # exact, not approximate
     assert weights.keys() == weights_again.keys() and len(weights) > 0
