@@ -8,7 +8,6 @@ CameraFailed, and the run ends at once. OpenCV and the simulator are imported la
 
 from __future__ import annotations
 
-import fcntl
 import os
 import struct
 import threading
@@ -208,6 +207,8 @@ JSIOCGAXES, JSIOCGBUTTONS = 0x80016A11, 0x80016A12
 
 def joystick_shape(fd: int) -> Optional[Tuple[int, int]]:
     """(axes, buttons) of the Linux joystick device open on fd; None if it is no joystick device."""
+    import fcntl  # here, not at the top: Windows has none, and the simulated car needs no gamepad
+
     counts = []
     for request in (JSIOCGAXES, JSIOCGBUTTONS):
         count = bytearray(1)
