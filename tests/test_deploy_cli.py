@@ -206,6 +206,8 @@ def test_a_gamepad_without_the_chosen_button_or_axis_is_refused_before_the_car_i
 
 
 def test_joystick_shape_asks_the_driver_for_its_axes_and_buttons(monkeypatch):
+    import fcntl
+
     from deploy import io
 
     def ior(nr: int, size: int) -> int:  # linux/ioctl.h: _IOR('j', nr, size) for the joystick API
@@ -218,7 +220,7 @@ def test_joystick_shape_asks_the_driver_for_its_axes_and_buttons(monkeypatch):
             raise OSError(25, "Inappropriate ioctl for device")
         buffer[0] = answers[request]
 
-    monkeypatch.setattr(io.fcntl, "ioctl", ioctl)
+    monkeypatch.setattr(fcntl, "ioctl", ioctl)  # joystick_shape imports fcntl when called
     assert io.joystick_shape(3) == (6, 12)
 
 
