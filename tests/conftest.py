@@ -1,6 +1,11 @@
-"""Shared test helpers: load an algorithm script as a module without running its main block."""
+"""Shared test helpers: load an algorithm script as a module without running its main block; a full disk."""
 
+import builtins
+import errno
 import importlib.util
+import io
+import os
+import re
 import sys
 from pathlib import Path
 
@@ -37,3 +42,30 @@ def small_checkpoint(sac, path: Path):
     sac.save_checkpoint(str(path), "Pendulum-v1", env, actor, qf, sac.Args(hidden_size=16))
     env.close()
     return actor
+
+
+class FullDisk(io.FileIO):
+    """A file on a disk with `room` bytes left: the write that reaches past it stores what fits, then
+    raises ENOSPC, as the OS does."""
+
+    room = 4096
+
+    def write(self, data) -> int:
+        data = memoryview(data).cast("B")
+        if self.tell() + len(data) > self.room:
+            super().write(data[: max(0, self.room - self.tell())])
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return super().write(data)
+
+
+def fill_the_disk_for(monkeypatch, name: str) -> None:
+    """open(path, "wb") of a file whose name matches the regular expression gives a FullDisk; every other
+    open is the real one."""
+    real_open = builtins.open
+
+    def open_(file, mode="r", *args, **kwargs):
+        if re.fullmatch(name, os.path.basename(file)) and mode == "wb":
+            return FullDisk(file, "wb")
+        return real_open(file, mode, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "open", open_)

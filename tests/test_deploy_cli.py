@@ -12,8 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import ROOT
-from test_sac_script import fill_the_disk_for
+from conftest import ROOT, fill_the_disk_for
 
 jetracer = pytest.importorskip("deploy.jetracer")
 from envs.car_interface import ActionMapping  # noqa: E402

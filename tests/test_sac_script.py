@@ -1,10 +1,7 @@
 """sac_continuous.py end to end: truncation handling, logging, checkpoints, errors, copyability."""
 
-import builtins
 import errno
-import io
 import os
-import re
 import runpy
 import shutil
 import subprocess
@@ -20,7 +17,7 @@ import torch
 from gymnasium.envs.classic_control.pendulum import PendulumEnv
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from conftest import ROOT, load_script, small_checkpoint
+from conftest import ROOT, fill_the_disk_for, load_script, small_checkpoint
 
 TINY = ["--hidden-size", "32", "--batch-size", "32", "--log-every", "50"]
 
@@ -360,33 +357,6 @@ def test_a_run_closes_every_env_it_opens(tmp_path, monkeypatch, script, regret):
         assert len(opened) >= 3 and any(env is g["shadow_env"].unwrapped for env in opened)
     unclosed = [env for env in opened if not any(env is c for c in closed)]
     assert not unclosed, f"{len(unclosed)} of {len(opened)} envs left open"
-
-
-class FullDisk(io.FileIO):
-    """A file on a disk with `room` bytes left: the write that reaches past it stores what fits, then
-    raises ENOSPC, as the OS does."""
-
-    room = 4096
-
-    def write(self, data) -> int:
-        data = memoryview(data).cast("B")
-        if self.tell() + len(data) > self.room:
-            super().write(data[: max(0, self.room - self.tell())])
-            raise OSError(errno.ENOSPC, "No space left on device")
-        return super().write(data)
-
-
-def fill_the_disk_for(monkeypatch, name: str) -> None:
-    """open(path, "wb") of a file whose name matches the regular expression gives a FullDisk; every other
-    open is the real one."""
-    real_open = builtins.open
-
-    def open_(file, mode="r", *args, **kwargs):
-        if re.fullmatch(name, os.path.basename(file)) and mode == "wb":
-            return FullDisk(file, "wb")
-        return real_open(file, mode, *args, **kwargs)
-
-    monkeypatch.setattr(builtins, "open", open_)
 
 
 def test_a_checkpoint_the_disk_cannot_hold_raises_its_os_error_and_leaves_no_file(tmp_path, monkeypatch, sac):
