@@ -13,17 +13,9 @@ import pytest
 import torch
 
 from conftest import ROOT
-from test_sac_script import TINY, scalars
+from test_sac_script import SHORT_RUNS, scalars
 
 TIMING = {"charts/SPS", "charts/baseline_rollout_seconds"}  # wall-clock figures, never equal
-SHORT = {
-    "sac_continuous": ["--total-timesteps", "500", "--learning-starts", "200", *TINY],
-    "jirl_sac_continuous": ["--total-timesteps", "500", "--learning-starts", "200", "--baseline-eval-episodes", "2", *TINY],
-    "ppo_il": ["--total-timesteps", "512", "--num-steps", "256", "--num-minibatches", "4", "--update-epochs", "2",
-               "--il-steps", "400", "--il-max-epochs", "10", "--hidden-size", "16", "--baseline-eval-episodes", "2"],
-    "trpo_il": ["--total-timesteps", "512", "--num-steps", "256", "--n-critic-updates", "2",
-                "--il-steps", "400", "--il-max-epochs", "10", "--hidden-size", "16", "--baseline-eval-episodes", "2"],
-}  # fmt: skip
 
 
 def runs(name: str, seeds: list[int], tmp_path: Path) -> list[tuple[dict[str, list[float]], dict[str, torch.Tensor]]]:
@@ -32,7 +24,7 @@ def runs(name: str, seeds: list[int], tmp_path: Path) -> list[tuple[dict[str, li
     started = []
     for seed, cwd in zip(seeds, folders):
         cwd.mkdir()
-        args = [*SHORT[name], "--seed", str(seed), "--save-model", "--eval-episodes", "2"]
+        args = [*SHORT_RUNS[name], "--baseline-eval-episodes", "2", "--seed", str(seed), "--save-model", "--eval-episodes", "2"]
         started.append(subprocess.Popen([sys.executable, str(ROOT / f"{name}.py"), *args], cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True))
     results = []
     for process, cwd in zip(started, folders):
@@ -55,7 +47,7 @@ def tensors(tree: dict, prefix: str = "") -> dict[str, torch.Tensor]:
     return found
 
 
-@pytest.mark.parametrize("name", list(SHORT))
+@pytest.mark.parametrize("name", list(SHORT_RUNS))
 def test_the_same_seed_gives_the_same_run(name, tmp_path):
     (logged, weights), (again, weights_again), (other, weights_other) = runs(name, [3, 3, 4], tmp_path)
 
