@@ -7,7 +7,9 @@ import importlib
 import math
 import os
 import random
+import signal
 import sys
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -756,6 +758,30 @@ def claim_run_dir(run_name: str) -> str:
             pass
 
 
+class StopRequest:
+    """Ctrl-C (SIGINT) or SIGTERM (`kill`, `timeout`, a cluster's time limit) ends the training at the
+    training loop's next turn instead of at once, so that --save-model still saves what was learnt. The
+    first signal puts the previous handlers back, so a second one acts as it always did."""
+
+    def __init__(self) -> None:
+        self.signum: Optional[int] = None
+        self.previous: dict = {}
+        if threading.current_thread() is not threading.main_thread():  # only the main thread may handle signals
+            return
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            if signal.getsignal(sig) is not signal.SIG_IGN:  # an ignored one stays ignored (a script's background job ignores Ctrl-C)
+                self.previous[sig] = signal.signal(sig, self.request)
+
+    def request(self, signum: int, frame: object) -> None:
+        self.signum = signum
+        self.restore()
+
+    def restore(self) -> None:
+        for sig, handler in self.previous.items():
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)  # None: a handler set outside Python
+        self.previous = {}
+
+
 if __name__ == "__main__":
     args = tyro.cli(Args)
     sys.path.append(os.getcwd())  # `module:...` in --env-id and --baseline may name a module in the current directory; last, so it shadows nothing installed
@@ -846,7 +872,10 @@ if __name__ == "__main__":
     if hasattr(baseline, "reset"):
         baseline.reset()
 
+    stop = StopRequest()  # from here Ctrl-C or SIGTERM ends the training at the next step
     for global_step in range(args.total_timesteps):
+        if stop.signum is not None:
+            break
         # ALGO LOGIC: put action logic here
         baseline_env_action = baseline(obs)  # Alg. 1, line 3: the baseline's action a^b
         with torch.inference_mode():
@@ -956,6 +985,9 @@ if __name__ == "__main__":
                 gate_log_prob_sum = gate_log_rho_sum = 0.0
                 gate_terms = 0
 
+    stop.restore()  # a signal from here on (saving, evaluating) acts at once
+    if stop.signum is not None:
+        print(f"{signal.Signals(stop.signum).name}: training stopped at step {global_step:,} of {args.total_timesteps:,}; a stopped run is not evaluated")
     if args.save_model:
         model_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
         try:
@@ -963,6 +995,7 @@ if __name__ == "__main__":
         except OSError as err:  # a full disk: say so in one line, not as torch's traceback
             raise SystemExit(f"{args.exp_name}: error: cannot save the model to {model_path}: {err.strerror or err}") from None
         print(f"model saved to {model_path}")
+    if args.save_model and stop.signum is None:  # a stopped run's model is saved, not evaluated
         try:
             episodic_returns = evaluate(model_path, args.env_id, args.eval_episodes, args.seed)
         except ValueError as err:  # the model is saved; only its evaluation failed
@@ -975,3 +1008,5 @@ if __name__ == "__main__":
     if shadow_env is not None:
         shadow_env.close()
     writer.close()
+    if stop.signum is not None:
+        sys.exit(128 + stop.signum)  # the status a shell gives a process the signal ended

@@ -5,7 +5,9 @@ import importlib
 import math
 import os
 import random
+import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from typing import Callable, Literal, Optional
@@ -552,6 +554,30 @@ def claim_run_dir(run_name: str) -> str:
             pass
 
 
+class StopRequest:
+    """Ctrl-C (SIGINT) or SIGTERM (`kill`, `timeout`, a cluster's time limit) ends the training at the
+    training loop's next turn instead of at once, so that --save-model still saves what was learnt. The
+    first signal puts the previous handlers back, so a second one acts as it always did."""
+
+    def __init__(self) -> None:
+        self.signum: Optional[int] = None
+        self.previous: dict = {}
+        if threading.current_thread() is not threading.main_thread():  # only the main thread may handle signals
+            return
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            if signal.getsignal(sig) is not signal.SIG_IGN:  # an ignored one stays ignored (a script's background job ignores Ctrl-C)
+                self.previous[sig] = signal.signal(sig, self.request)
+
+    def request(self, signum: int, frame: object) -> None:
+        self.signum = signum
+        self.restore()
+
+    def restore(self) -> None:
+        for sig, handler in self.previous.items():
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)  # None: a handler set outside Python
+        self.previous = {}
+
+
 if __name__ == "__main__":
     args = resolve_hyperparameters(tyro.cli(Args))
     sys.path.append(os.getcwd())  # `module:...` in --env-id and --baseline may name a module in the current directory; last, so it shadows nothing installed
@@ -676,7 +702,10 @@ if __name__ == "__main__":
 
     next_obs = observe(raw_obs)
     next_done = 0.0
+    stop = StopRequest()  # from here Ctrl-C or SIGTERM ends the training after the rollout and update in progress
     for iteration in range(1, num_iterations + 1):
+        if stop.signum is not None:
+            break
         # Annealing the rate if instructed to do so.
         if args.anneal_lr:
             frac = 1.0 - (iteration - 1.0) / num_iterations
@@ -812,6 +841,9 @@ if __name__ == "__main__":
         writer.add_scalar("charts/SPS", sps, global_step)
         writer.add_scalar("charts/baseline_rollout_seconds", baseline_seconds, global_step)
 
+    stop.restore()  # a signal from here on (saving, evaluating) acts at once
+    if stop.signum is not None:
+        print(f"{signal.Signals(stop.signum).name}: training stopped at step {global_step:,} of {num_iterations * batch_size:,}; a stopped run is not evaluated")
     if args.save_model:
         model_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
         try:
@@ -819,6 +851,7 @@ if __name__ == "__main__":
         except OSError as err:  # a full disk: say so in one line, not as torch's traceback
             raise SystemExit(f"{args.exp_name}: error: cannot save the model to {model_path}: {err.strerror or err}") from None
         print(f"model saved to {model_path}")
+    if args.save_model and stop.signum is None:  # a stopped run's model is saved, not evaluated
         try:
             episodic_returns = evaluate(model_path, args.env_id, args.eval_episodes, args.seed)
         except ValueError as err:  # the model is saved; only its evaluation failed
@@ -830,3 +863,5 @@ if __name__ == "__main__":
     env.close()
     shadow_env.close()
     writer.close()
+    if stop.signum is not None:
+        sys.exit(128 + stop.signum)  # the status a shell gives a process the signal ended
