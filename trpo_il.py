@@ -878,7 +878,7 @@ if __name__ == "__main__":
 
     stop.restore()  # a signal from here on (saving, evaluating) acts at once
     if stop.signum is not None:
-        print(f"{signal.Signals(stop.signum).name}: training stopped at step {global_step:,} of {num_iterations * batch_size:,}; a stopped run is not evaluated")
+        print(f"{signal.Signals(stop.signum).name}: training stopped at step {global_step:,} of {num_iterations * batch_size:,}" + ("; saving the model without evaluating it" if args.save_model else ""))
     if args.save_model:
         model_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
         try:

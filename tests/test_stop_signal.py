@@ -80,6 +80,7 @@ def test_outside_the_main_thread_no_handler_is_set(sac, handlers):
 # rollouts and updates (PPO+IL, TRPO+IL), so that the update code has run.
 TRIGGER = {"sac_continuous": ("global_step=399,", 1), "jirl_sac_continuous": ("global_step=399,", 1), "ppo_il": ("SPS:", 2), "trpo_il": ("SPS:", 2)}
 SIGNAL = {"sac_continuous": signal.SIGINT, "jirl_sac_continuous": signal.SIGTERM, "ppo_il": signal.SIGINT, "trpo_il": signal.SIGTERM}
+SAVE = {"sac_continuous": True, "jirl_sac_continuous": True, "ppo_il": True, "trpo_il": False}  # one run without --save-model
 
 
 def test_a_signalled_run_saves_its_model_without_evaluating_it(tmp_path):
@@ -87,7 +88,7 @@ def test_a_signalled_run_saves_its_model_without_evaluating_it(tmp_path):
     for script in SCRIPTS:  # side by side
         cwd = tmp_path / script
         cwd.mkdir()
-        args = [*without(SHORT_RUNS[script], "--total-timesteps"), "--total-timesteps", "10000000", "--baseline-eval-episodes", "1", "--save-model"]
+        args = [*without(SHORT_RUNS[script], "--total-timesteps"), "--total-timesteps", "10000000", "--baseline-eval-episodes", "1"] + ["--save-model"] * SAVE[script]
         process = subprocess.Popen([sys.executable, str(ROOT / f"{script}.py"), *args], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                    text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"}, preexec_fn=as_in_a_terminal)  # fmt: skip
         started[script] = (process, cwd)
@@ -104,19 +105,23 @@ def test_a_signalled_run_saves_its_model_without_evaluating_it(tmp_path):
             out = "".join(lines) + process.communicate(timeout=60)[0]
             name = SIGNAL[script].name
             assert process.returncode == 128 + SIGNAL[script], out
-            stopped = re.search(rf"^{name}: training stopped at step ([\d,]+) of ([\d,]+); a stopped run is not evaluated$", out, re.M)
+            saving = "; saving the model without evaluating it" if SAVE[script] else ""
+            stopped = re.search(rf"^{name}: training stopped at step ([\d,]+) of ([\d,]+){saving}$", out, re.M)
             assert stopped, out
             step = int(stopped.group(1).replace(",", ""))
             assert step >= (400 if script.startswith(("sac", "jirl")) else 256) and step < 10_000_000
             assert "eval:" not in out and "Traceback" not in out, out
             (run_dir,) = (cwd / "runs").iterdir()
-            model = run_dir / f"{script}.cleanrl_model"
-            assert f"model saved to runs/{run_dir.name}/{model.name}" in out
-            (episode_return,) = load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)  # the saved model is whole
-            assert np.isfinite(episode_return)
             logged = scalars(run_dir)
             assert "eval/episodic_return" not in logged
             assert len(logged["charts/episodic_return"]) >= 2
+            model = run_dir / f"{script}.cleanrl_model"
+            if not SAVE[script]:
+                assert not model.exists()
+                continue
+            assert f"model saved to runs/{run_dir.name}/{model.name}" in out
+            (episode_return,) = load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)  # the saved model is whole
+            assert np.isfinite(episode_return)
     finally:  # a failed run leaves none of the others training on
         for process, _ in started.values():
             process.kill()
