@@ -92,6 +92,9 @@ def test_a_signalled_run_saves_its_model_without_evaluating_it(tmp_path):
         process = subprocess.Popen([sys.executable, str(ROOT / f"{script}.py"), *args], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                    text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"}, preexec_fn=as_in_a_terminal)  # fmt: skip
         started[script] = (process, cwd)
+    watchdogs = [threading.Timer(180, process.kill) for process, _ in started.values()]  # a run that hangs fails the test, not CI
+    for watchdog in watchdogs:
+        watchdog.start()
     try:
         for script, (process, cwd) in started.items():
             (trigger, times), lines, seen = TRIGGER[script], [], 0
@@ -123,6 +126,8 @@ def test_a_signalled_run_saves_its_model_without_evaluating_it(tmp_path):
             (episode_return,) = load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)  # the saved model is whole
             assert np.isfinite(episode_return)
     finally:  # a failed run leaves none of the others training on
+        for watchdog in watchdogs:
+            watchdog.cancel()
         for process, _ in started.values():
             process.kill()
             process.wait()
