@@ -758,13 +758,21 @@ def claim_run_dir(run_name: str) -> str:
             pass
 
 
+def non_finite(obs: np.ndarray, reward: float = 0.0) -> bool:
+    """Whether an env returned NaN or infinity (a simulation that diverged); one such number learnt
+    from turns every weight to NaN."""
+    return not (math.isfinite(reward) and np.isfinite(obs).all())
+
+
 class StopRequest:
-    """Ctrl-C (SIGINT) or SIGTERM (`kill`, `timeout`, a cluster's time limit) ends the training at the
-    training loop's next turn instead of at once, so that --save-model still saves what was learnt. The
-    first signal puts the previous handlers back, so a second one acts as it always did."""
+    """Why the training ends before its last step: Ctrl-C (SIGINT) or SIGTERM (`kill`, `timeout`, a
+    cluster's time limit), caught so that the run ends at the training loop's next turn instead of at
+    once; or an env that returned NaN. Either way --save-model still saves what was learnt. The first
+    signal puts the previous handlers back, so a second one acts as it always did."""
 
     def __init__(self) -> None:
-        self.signum: Optional[int] = None
+        self.reason: Optional[str] = None  # said when the training stops
+        self.status = 0  # the run's exit status then
         self.previous: dict = {}
         if threading.current_thread() is not threading.main_thread():  # only the main thread may handle signals
             return
@@ -773,7 +781,10 @@ class StopRequest:
                 self.previous[sig] = signal.signal(sig, self.request)
 
     def request(self, signum: int, frame: object) -> None:
-        self.signum = signum
+        self.end(f"{signal.Signals(signum).name} received", 128 + signum)  # the status a shell gives a process the signal ended
+
+    def end(self, reason: str, status: int) -> None:
+        self.reason, self.status = reason, status
         self.restore()
 
     def restore(self) -> None:
@@ -858,6 +869,8 @@ if __name__ == "__main__":
     start_time = time.time()
     episode, episode_rewards = 0, []
     obs, _ = env.reset(seed=args.seed)
+    if non_finite(obs):
+        raise SystemExit(f"{args.exp_name}: error: {args.env_id} returned a non-finite observation at its first reset")
     if estimator == "paired":
         t0 = time.time()
         baseline_first_obs, baseline_rewards = baseline_rollout(shadow_env, baseline, args.seed)
@@ -872,9 +885,9 @@ if __name__ == "__main__":
     if hasattr(baseline, "reset"):
         baseline.reset()
 
-    stop = StopRequest()  # from here Ctrl-C or SIGTERM ends the training at the next step
+    stop = StopRequest()  # from here Ctrl-C, SIGTERM or a NaN from the env ends the training, keeping what was learnt
     for global_step in range(args.total_timesteps):
-        if stop.signum is not None:
+        if stop.reason is not None:
             break
         # ALGO LOGIC: put action logic here
         baseline_env_action = baseline(obs)  # Alg. 1, line 3: the baseline's action a^b
@@ -909,6 +922,9 @@ if __name__ == "__main__":
 
         # TRY NOT TO MODIFY: execute the game and log data.
         next_obs, reward, terminated, truncated, _ = env.step(to_env_units(action, low, high))
+        if non_finite(next_obs, reward):  # a simulation that diverged: none of it may reach the buffer
+            stop.end(f"{args.exp_name}: error: {args.env_id} returned a non-finite observation or reward", 1)
+            break
         episode_rewards.append(float(reward))
 
         # Bootstrap through time-limit truncation: store `terminated`, never `truncated`; next_obs is
@@ -954,6 +970,9 @@ if __name__ == "__main__":
             previous_rl_transition = None
             gate.new_episode()
             obs, _ = env.reset(seed=args.seed + episode)
+            if non_finite(obs):
+                stop.end(f"{args.exp_name}: error: {args.env_id} returned a non-finite observation at a reset", 1)
+                break
             if estimator == "paired":
                 t0 = time.time()
                 _, baseline_rewards = baseline_rollout(shadow_env, baseline, args.seed + episode)
@@ -986,8 +1005,8 @@ if __name__ == "__main__":
                 gate_terms = 0
 
     stop.restore()  # a signal from here on (saving, evaluating) acts at once
-    if stop.signum is not None:
-        print(f"{signal.Signals(stop.signum).name}: training stopped at step {global_step:,} of {args.total_timesteps:,}" + ("; saving the model without evaluating it" if args.save_model else ""))
+    if stop.reason is not None:
+        print(f"{stop.reason}: training stopped at step {global_step:,} of {args.total_timesteps:,}" + ("; saving the model without evaluating it" if args.save_model else ""), file=sys.stderr)
     if args.save_model:
         model_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
         try:
@@ -995,7 +1014,7 @@ if __name__ == "__main__":
         except OSError as err:  # a full disk: say so in one line, not as torch's traceback
             raise SystemExit(f"{args.exp_name}: error: cannot save the model to {model_path}: {err.strerror or err}") from None
         print(f"model saved to {model_path}")
-    if args.save_model and stop.signum is None:  # a stopped run's model is saved, not evaluated
+    if args.save_model and stop.reason is None:  # a stopped run's model is saved, not evaluated
         try:
             episodic_returns = evaluate(model_path, args.env_id, args.eval_episodes, args.seed)
         except ValueError as err:  # the model is saved; only its evaluation failed
@@ -1008,5 +1027,5 @@ if __name__ == "__main__":
     if shadow_env is not None:
         shadow_env.close()
     writer.close()
-    if stop.signum is not None:
-        sys.exit(128 + stop.signum)  # the status a shell gives a process the signal ended
+    if stop.reason is not None:
+        sys.exit(stop.status)

@@ -554,13 +554,21 @@ def claim_run_dir(run_name: str) -> str:
             pass
 
 
+def non_finite(obs: np.ndarray, reward: float = 0.0) -> bool:
+    """Whether an env returned NaN or infinity (a simulation that diverged); one such number learnt
+    from turns every weight to NaN."""
+    return not (math.isfinite(reward) and np.isfinite(obs).all())
+
+
 class StopRequest:
-    """Ctrl-C (SIGINT) or SIGTERM (`kill`, `timeout`, a cluster's time limit) ends the training at the
-    training loop's next turn instead of at once, so that --save-model still saves what was learnt. The
-    first signal puts the previous handlers back, so a second one acts as it always did."""
+    """Why the training ends before its last step: Ctrl-C (SIGINT) or SIGTERM (`kill`, `timeout`, a
+    cluster's time limit), caught so that the run ends at the training loop's next turn instead of at
+    once; or an env that returned NaN. Either way --save-model still saves what was learnt. The first
+    signal puts the previous handlers back, so a second one acts as it always did."""
 
     def __init__(self) -> None:
-        self.signum: Optional[int] = None
+        self.reason: Optional[str] = None  # said when the training stops
+        self.status = 0  # the run's exit status then
         self.previous: dict = {}
         if threading.current_thread() is not threading.main_thread():  # only the main thread may handle signals
             return
@@ -569,7 +577,10 @@ class StopRequest:
                 self.previous[sig] = signal.signal(sig, self.request)
 
     def request(self, signum: int, frame: object) -> None:
-        self.signum = signum
+        self.end(f"{signal.Signals(signum).name} received", 128 + signum)  # the status a shell gives a process the signal ended
+
+    def end(self, reason: str, status: int) -> None:
+        self.reason, self.status = reason, status
         self.restore()
 
     def restore(self) -> None:
@@ -683,6 +694,8 @@ if __name__ == "__main__":
     start_time = time.time()
     episode, episode_rewards = 0, []
     raw_obs, _ = env.reset(seed=args.seed)
+    if non_finite(raw_obs):
+        raise SystemExit(f"{args.exp_name}: error: {args.env_id} returned a non-finite observation at its first reset")
     if estimator == "paired":
         t0 = time.time()
         baseline_first_obs, baseline_rewards = baseline_rollout(shadow_env, baseline, args.seed)
@@ -702,9 +715,9 @@ if __name__ == "__main__":
 
     next_obs = observe(raw_obs)
     next_done = 0.0
-    stop = StopRequest()  # from here Ctrl-C or SIGTERM ends the training after the rollout and update in progress
+    stop = StopRequest()  # from here Ctrl-C, SIGTERM or a NaN from the env ends the training, keeping what was learnt
     for iteration in range(1, num_iterations + 1):
-        if stop.signum is not None:
+        if stop.reason is not None:
             break
         # Annealing the rate if instructed to do so.
         if args.anneal_lr:
@@ -725,6 +738,9 @@ if __name__ == "__main__":
 
             # TRY NOT TO MODIFY: execute the game and log data.
             raw_obs, reward, terminated, truncated, _ = env.step(to_env_units(action[0].numpy(), low, high))
+            if non_finite(raw_obs, reward):  # a simulation that diverged: none of it may reach the rollout
+                stop.end(f"{args.exp_name}: error: {args.env_id} returned a non-finite observation or reward", 1)
+                break
             episode_rewards.append(float(reward))
             if obs_rms is not None:
                 obs_rms.update(raw_obs)
@@ -755,11 +771,16 @@ if __name__ == "__main__":
                     writer.add_scalar("charts/baseline_regret_per_step", baseline_regret_per_step, global_step)
                 episode, episode_rewards, discounted_return = episode + 1, [], 0.0
                 raw_obs, _ = env.reset(seed=args.seed + episode)
+                if non_finite(raw_obs):
+                    stop.end(f"{args.exp_name}: error: {args.env_id} returned a non-finite observation at a reset", 1)
+                    break
                 if estimator == "paired":
                     t0 = time.time()
                     _, baseline_rewards = baseline_rollout(shadow_env, baseline, args.seed + episode)
                     baseline_seconds += time.time() - t0
             next_obs = observe(raw_obs)
+        if stop.reason is not None:  # the env failed, or a signal came, during the rollout: no update from it
+            break
 
         # bootstrap value if not done
         with torch.no_grad():
@@ -842,8 +863,8 @@ if __name__ == "__main__":
         writer.add_scalar("charts/baseline_rollout_seconds", baseline_seconds, global_step)
 
     stop.restore()  # a signal from here on (saving, evaluating) acts at once
-    if stop.signum is not None:
-        print(f"{signal.Signals(stop.signum).name}: training stopped at step {global_step:,} of {num_iterations * batch_size:,}" + ("; saving the model without evaluating it" if args.save_model else ""))
+    if stop.reason is not None:
+        print(f"{stop.reason}: training stopped at step {global_step:,} of {num_iterations * batch_size:,}" + ("; saving the model without evaluating it" if args.save_model else ""), file=sys.stderr)
     if args.save_model:
         model_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
         try:
@@ -851,7 +872,7 @@ if __name__ == "__main__":
         except OSError as err:  # a full disk: say so in one line, not as torch's traceback
             raise SystemExit(f"{args.exp_name}: error: cannot save the model to {model_path}: {err.strerror or err}") from None
         print(f"model saved to {model_path}")
-    if args.save_model and stop.signum is None:  # a stopped run's model is saved, not evaluated
+    if args.save_model and stop.reason is None:  # a stopped run's model is saved, not evaluated
         try:
             episodic_returns = evaluate(model_path, args.env_id, args.eval_episodes, args.seed)
         except ValueError as err:  # the model is saved; only its evaluation failed
@@ -863,5 +884,5 @@ if __name__ == "__main__":
     env.close()
     shadow_env.close()
     writer.close()
-    if stop.signum is not None:
-        sys.exit(128 + stop.signum)  # the status a shell gives a process the signal ended
+    if stop.reason is not None:
+        sys.exit(stop.status)

@@ -1,17 +1,24 @@
-"""Ctrl-C or SIGTERM during training ends the run at the training loop's next turn: what was learnt is
-saved (--save-model), not evaluated, and the process exits with the status a shell gives a signalled
-process. A long run stopped by hand, by `timeout` or by a cluster's time limit keeps its model."""
+"""A training that must end early keeps what it learnt. Ctrl-C or SIGTERM ends the run at the training
+loop's next turn, and a NaN from the env ends it before the NaN reaches the buffer: the model is saved
+(--save-model), not evaluated, and the process exits with the status a shell gives a signalled
+process, or 1. A long run stopped by hand, by `timeout`, by a cluster's time limit or by a simulation
+that diverged keeps its model."""
 
 import os
 import re
+import runpy
 import signal
 import subprocess
 import sys
 import threading
 import time
 
+import gymnasium as gym
 import numpy as np
 import pytest
+import torch
+from gymnasium.envs.classic_control.pendulum import PendulumEnv
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from conftest import ROOT, load_script
 from test_sac_script import SHORT_RUNS, scalars
@@ -48,7 +55,7 @@ def test_the_first_signal_is_recorded_and_the_second_acts_as_before(script, hand
     assert signal.getsignal(signal.SIGINT) == stop.request and signal.getsignal(signal.SIGTERM) == stop.request
     os.kill(os.getpid(), signal.SIGINT)
     time.sleep(0.01)  # Python runs the handler in the main thread at its next instruction
-    assert stop.signum == signal.SIGINT
+    assert (stop.reason, stop.status) == ("SIGINT received", 130)
     assert {sig: signal.getsignal(sig) for sig in handlers} == handlers
     with pytest.raises(KeyboardInterrupt):  # the handler Python starts with
         os.kill(os.getpid(), signal.SIGINT)
@@ -63,7 +70,7 @@ def test_an_ignored_signal_stays_ignored(sac, handlers):
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_IGN
     os.kill(os.getpid(), signal.SIGTERM)
     time.sleep(0.01)
-    assert stop.signum is None
+    assert stop.reason is None
     stop.restore()
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_IGN and signal.getsignal(signal.SIGINT) == handlers[signal.SIGINT]
 
@@ -109,7 +116,7 @@ def test_a_signalled_run_saves_its_model_without_evaluating_it(tmp_path):
             name = SIGNAL[script].name
             assert process.returncode == 128 + SIGNAL[script], out
             saving = "; saving the model without evaluating it" if SAVE[script] else ""
-            stopped = re.search(rf"^{name}: training stopped at step ([\d,]+) of ([\d,]+){saving}$", out, re.M)
+            stopped = re.search(rf"^{name} received: training stopped at step ([\d,]+) of ([\d,]+){saving}$", out, re.M)
             assert stopped, out
             step = int(stopped.group(1).replace(",", ""))
             assert step >= (400 if script.startswith(("sac", "jirl")) else 256) and step < 10_000_000
@@ -131,3 +138,73 @@ def test_a_signalled_run_saves_its_model_without_evaluating_it(tmp_path):
         for process, _ in started.values():
             process.kill()
             process.wait()
+
+
+def test_non_finite_finds_nan_and_infinity_in_an_observation_or_a_reward(sac):
+    obs = np.array([0.5, -1.0, 3.0], dtype=np.float32)
+    assert not sac.non_finite(obs, -2.5) and not sac.non_finite(obs)
+    for bad in (np.nan, np.inf, -np.inf):
+        assert sac.non_finite(np.array([0.5, bad, 3.0]), 1.0)
+        assert sac.non_finite(obs, bad)
+
+
+class DivergingPendulum(PendulumEnv):
+    """Pendulum-v1 whose episode from reset seed 3 (a run's third, at the default --seed 1) diverges:
+    NaN at its 50th step, or at the reset itself."""
+
+    at_reset = False
+
+    def reset(self, *, seed=None, options=None):
+        obs, info = super().reset(seed=seed, options=options)
+        self.diverging, self.t = seed == 3, 0
+        return (obs * np.nan if self.diverging and self.at_reset else obs), info
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        self.t += 1
+        if self.diverging and self.t == 50:
+            return obs * np.nan, float("nan"), terminated, truncated, info
+        return obs, reward, terminated, truncated, info
+
+
+gym.register("DivergingPendulum-v0", entry_point=DivergingPendulum, max_episode_steps=200)
+
+
+def zero_torque(obs: np.ndarray) -> np.ndarray:
+    return np.zeros(1)
+
+
+def tensors(tree) -> list[torch.Tensor]:
+    if isinstance(tree, torch.Tensor):
+        return [tree]
+    return [t for value in tree.values() for t in tensors(value)] if isinstance(tree, dict) else []
+
+
+@pytest.mark.filterwarnings("ignore:.*(NaN value|not within the observation space).*")  # Gymnasium's env checker says so too
+@pytest.mark.parametrize("at_reset", [False, True], ids=["step", "reset"])
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_diverged_env_ends_the_training_with_its_model_saved_unharmed(script, at_reset, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(DivergingPendulum, "at_reset", at_reset)
+    args = [*without(SHORT_RUNS[script], "--total-timesteps"), "--total-timesteps", "1000", "--env-id", "DivergingPendulum-v0",
+            "--baseline", f"{__name__}:zero_torque", "--regret-estimator", "off", "--save-model"]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
+    with pytest.raises(SystemExit) as ended:
+        runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
+    assert ended.value.code == 1
+    out, err = capsys.readouterr()
+    # the reset after the second episode's last step, or the third episode's 50th step (SAC counts steps from 0, PPO from 1)
+    step = (399 if at_reset else 449) + script.endswith("_il")
+    what = "a non-finite observation at a reset" if at_reset else "a non-finite observation or reward"
+    total = "1,000" if script.startswith(("sac", "jirl")) else "896"  # PPO and TRPO train whole rollouts of 128
+    assert f"{script}: error: DivergingPendulum-v0 returned {what}: training stopped at step {step} of {total}; saving the model without evaluating it" in err
+    assert "eval:" not in out
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    checkpoint = torch.load(run_dir / f"{script}.cleanrl_model", weights_only=False)
+    weights = [t for t in tensors(checkpoint) if t.is_floating_point()]
+    assert len(weights) >= 10 and all(torch.isfinite(t).all() for t in weights), "NaN reached the networks"
+    assert np.isfinite(load_script(script).evaluate(str(run_dir / f"{script}.cleanrl_model"), "Pendulum-v1", 1, 0)[0])
+    if script.endswith("_il"):  # the rollout cut short is not learnt from: the last update is the third rollout's
+        events = EventAccumulator(str(run_dir))
+        events.Reload()
+        assert events.Scalars("charts/SPS")[-1].step == 3 * 128
