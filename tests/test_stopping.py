@@ -22,6 +22,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from conftest import ROOT, load_script
 from test_sac_script import SHORT_RUNS, scalars
+from test_same_seed import tensors
 
 SCRIPTS = list(SHORT_RUNS)
 
@@ -174,12 +175,6 @@ def zero_torque(obs: np.ndarray) -> np.ndarray:
     return np.zeros(1)
 
 
-def tensors(tree) -> list[torch.Tensor]:
-    if isinstance(tree, torch.Tensor):
-        return [tree]
-    return [t for value in tree.values() for t in tensors(value)] if isinstance(tree, dict) else []
-
-
 @pytest.mark.filterwarnings("ignore:.*(NaN value|not within the observation space).*")  # Gymnasium's env checker says so too
 @pytest.mark.parametrize("at_reset", [False, True], ids=["step", "reset"])
 @pytest.mark.parametrize("script", SCRIPTS)
@@ -201,7 +196,7 @@ def test_a_diverged_env_ends_the_training_with_its_model_saved_unharmed(script, 
     assert "eval:" not in out
     (run_dir,) = (tmp_path / "runs").iterdir()
     checkpoint = torch.load(run_dir / f"{script}.cleanrl_model", weights_only=False)
-    weights = [t for t in tensors(checkpoint) if t.is_floating_point()]
+    weights = [t for t in tensors(checkpoint).values() if t.is_floating_point()]
     assert len(weights) >= 10 and all(torch.isfinite(t).all() for t in weights), "NaN reached the networks"
     assert np.isfinite(load_script(script).evaluate(str(run_dir / f"{script}.cleanrl_model"), "Pendulum-v1", 1, 0)[0])
     if script.endswith("_il"):  # the rollout cut short is not learnt from: the last update is the third rollout's
