@@ -203,3 +203,15 @@ def test_a_diverged_env_ends_the_training_with_its_model_saved_unharmed(script, 
         events = EventAccumulator(str(run_dir))
         events.Reload()
         assert events.Scalars("charts/SPS")[-1].step == 3 * 128
+
+
+@pytest.mark.filterwarnings("ignore:.*(NaN value|not within the observation space).*")
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_nan_at_the_first_reset_is_a_one_line_error(script, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(DivergingPendulum, "at_reset", True)
+    args = [*SHORT_RUNS[script], "--env-id", "DivergingPendulum-v0", "--seed", "3", "--baseline", f"{__name__}:zero_torque", "--regret-estimator", "off"]
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
+    with pytest.raises(SystemExit) as ended:
+        runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
+    assert ended.value.code == f"{script}: error: DivergingPendulum-v0 returned a non-finite observation at its first reset"
