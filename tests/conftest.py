@@ -1,4 +1,5 @@
-"""Shared test helpers: load an algorithm script as a module without running its main block; a full disk."""
+"""Shared test helpers: load an algorithm script as a module without running its main block; a full disk;
+and a check that no test leaves a signal handler changed."""
 
 import builtins
 import errno
@@ -6,6 +7,7 @@ import importlib.util
 import io
 import os
 import re
+import signal
 import sys
 from pathlib import Path
 
@@ -28,6 +30,18 @@ def load_script(name: str):
     sys.modules[name] = module  # dataclasses with postponed annotations look their module up here
     spec.loader.exec_module(module)
     return module
+
+
+@pytest.fixture(autouse=True)
+def signal_handlers_restored(request):
+    """Every test leaves SIGINT and SIGTERM as it found them. The scripts' training loops and the car's
+    sessions catch both while they run, in-process too, and must give them back when they end."""
+    before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    yield
+    after = {sig: signal.getsignal(sig) for sig in before}
+    for sig, handler in before.items():  # so that one leak fails one test, not every later one
+        signal.signal(sig, handler)
+    assert after == before, f"{request.node.name} left the handlers {after} in place of {before}"
 
 
 @pytest.fixture(scope="session")

@@ -4,7 +4,6 @@ import errno
 import os
 import runpy
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -351,9 +350,7 @@ def test_a_run_closes_every_env_it_opens(tmp_path, monkeypatch, script, regret):
     monkeypatch.chdir(tmp_path)
     args = [*SHORT_RUNS[script], "--regret-estimator", regret, "--baseline-eval-episodes", "1", "--save-model", "--eval-episodes", "1"]
     monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
-    handlers = [signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)]
-    g = runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
-    assert [signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)] == handlers, "the run left its stop handlers in place"
+    g = runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")  # conftest checks that it gives the signal handlers back
     if regret == "off":  # SAC needs no baseline then
         assert g["shadow_env"] is None and len(opened) == 2
     else:
