@@ -139,6 +139,7 @@ def test_a_signalled_run_saves_its_model_without_evaluating_it(tmp_path):
         for process, _ in started.values():
             process.kill()
             process.wait()
+            process.stdout.close()
 
 
 def test_non_finite_finds_nan_and_infinity_in_an_observation_or_a_reward(sac):
