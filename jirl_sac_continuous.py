@@ -243,6 +243,8 @@ def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.nd
         if action is None:
             raise ValueError("the baseline returned None (it only intervenes), so it cannot be measured; use --regret-estimator off")
         obs, reward, terminated, truncated, _ = env.step(check_baseline_action(action, env.action_space))
+        if non_finite(obs, reward):  # a NaN regret would hide every later episode's
+            raise ValueError(f"the env returned a non-finite observation or reward in the baseline's episode from reset seed {seed}")
         rewards.append(float(reward))
         done = terminated or truncated
         if not done and len(rewards) == EPISODE_LIMIT:  # a baseline that never fails would run for ever
@@ -767,8 +769,8 @@ def non_finite(obs: np.ndarray, reward: float = 0.0) -> bool:
 class StopRequest:
     """Why the training ends before its last step: Ctrl-C (SIGINT) or SIGTERM (`kill`, `timeout`, a
     cluster's time limit), caught so that the run ends at the training loop's next turn instead of at
-    once; or an env that returned NaN. Either way --save-model still saves what was learnt. The first
-    signal puts the previous handlers back, so a second one acts as it always did."""
+    once; or an env or a baseline that failed. Either way --save-model still saves what was learnt.
+    The first signal puts the previous handlers back, so a second one acts as it always did."""
 
     def __init__(self) -> None:
         self.reason: Optional[str] = None  # said when the training stops
@@ -873,7 +875,10 @@ if __name__ == "__main__":
         raise SystemExit(f"{args.exp_name}: error: {args.env_id} returned a non-finite observation at its first reset")
     if estimator == "paired":
         t0 = time.time()
-        baseline_first_obs, baseline_rewards = baseline_rollout(shadow_env, baseline, args.seed)
+        try:
+            baseline_first_obs, baseline_rewards = baseline_rollout(shadow_env, baseline, args.seed)
+        except ValueError as err:
+            raise SystemExit(f"{args.exp_name}: error: {err}")
         baseline_seconds += time.time() - t0
         if not np.array_equal(baseline_first_obs, obs):  # the env ignores its reset seed: pairing is impossible
             if args.regret_estimator == "paired":
@@ -885,7 +890,7 @@ if __name__ == "__main__":
     if hasattr(baseline, "reset"):
         baseline.reset()
 
-    stop = StopRequest()  # from here Ctrl-C, SIGTERM or a NaN from the env ends the training, keeping what was learnt
+    stop = StopRequest()  # from here Ctrl-C, SIGTERM, a NaN from the env or a failing baseline ends the training, keeping what was learnt
     for global_step in range(args.total_timesteps):
         if stop.reason is not None:
             break
@@ -899,7 +904,11 @@ if __name__ == "__main__":
             rl_acts, baseline_action = True, None
             gate.skip()
         else:
-            baseline_action = to_policy_units(check_baseline_action(baseline_env_action, env.action_space), low, high)
+            try:
+                baseline_action = to_policy_units(check_baseline_action(baseline_env_action, env.action_space), low, high)
+            except ValueError as err:  # at a state the agent led to, far from the baseline's own: keep the model
+                stop.end(f"{args.exp_name}: error: {err}", 1)
+                break
             if args.intervention_mode:
                 rl_acts = False
             else:  # Alg. 1, line 4: the gate (Alg. 3)
@@ -975,7 +984,11 @@ if __name__ == "__main__":
                 break
             if estimator == "paired":
                 t0 = time.time()
-                _, baseline_rewards = baseline_rollout(shadow_env, baseline, args.seed + episode)
+                try:
+                    _, baseline_rewards = baseline_rollout(shadow_env, baseline, args.seed + episode)
+                except ValueError as err:  # the baseline failed (a bad action, a NaN from the env) after hours, maybe: keep the model
+                    stop.end(f"{args.exp_name}: error: {err}", 1)
+                    break
                 baseline_seconds += time.time() - t0
             if hasattr(baseline, "reset"):
                 baseline.reset()

@@ -216,3 +216,73 @@ def test_a_nan_at_the_first_reset_is_a_one_line_error(script, tmp_path, monkeypa
     with pytest.raises(SystemExit) as ended:
         runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
     assert ended.value.code == f"{script}: error: DivergingPendulum-v0 returned a non-finite observation at its first reset"
+
+
+class BaselineFailingAtCall:
+    """Zero torque until its `limit`-th call, then NaN: a controller that breaks at a state it was never
+    written for."""
+
+    limit = 1000
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def __call__(self, obs: np.ndarray) -> float:
+        self.calls += 1
+        return float("nan") if self.calls >= self.limit else 0.0
+
+
+def assert_stopped_with_a_whole_model(script: str, err: str, message: str, step: int, tmp_path) -> None:
+    stopped = re.search(rf"^{script}: error: {re.escape(message)}: training stopped at step {step:,} of [\d,]+; saving the model without evaluating it$", err, re.M)
+    assert stopped, err
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    model = run_dir / f"{script}.cleanrl_model"
+    assert all(torch.isfinite(t).all() for t in tensors(torch.load(model, weights_only=False)).values() if t.is_floating_point())
+    assert np.isfinite(load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)[0])
+
+
+# The baseline's call that fails, and the training step then: 200 calls measure the baseline, 200 run the first
+# paired episode, and each 200-step training episode ends with another; PPO+IL and TRPO+IL first imitate 400
+# steps. JIRL also asks the baseline at every step, so its 700th call is in the paired episode after step 199
+# and its 1,000th at step 399.
+FAILING_CALL = {("sac_continuous", "paired"): (1000, 599), ("jirl_sac_continuous", "paired"): (700, 199),
+                ("jirl_sac_continuous", "every step"): (1000, 399), ("ppo_il", "paired"): (1000, 200), ("trpo_il", "paired"): (1000, 200)}  # fmt: skip
+
+
+@pytest.mark.parametrize("script, where", list(FAILING_CALL))
+def test_a_baseline_failing_mid_training_keeps_the_model(script, where, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    call, step = FAILING_CALL[script, where]
+    monkeypatch.setattr(BaselineFailingAtCall, "limit", call)
+    args = [*without(SHORT_RUNS[script], "--total-timesteps"), "--total-timesteps", "1000", "--baseline", f"{__name__}:BaselineFailingAtCall",
+            "--regret-estimator", "paired", "--baseline-eval-episodes", "1", "--save-model"]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
+    with pytest.raises(SystemExit) as ended:
+        runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
+    assert ended.value.code == 1
+    assert_stopped_with_a_whole_model(script, capsys.readouterr().err, "the baseline returned nan; expected 1 finite number(s) in env units", step, tmp_path)
+
+
+def test_a_baseline_failing_in_its_first_paired_episode_is_a_one_line_error(sac, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(BaselineFailingAtCall, "limit", 300)  # after the 200 calls measuring it
+    args = [*SHORT_RUNS["sac_continuous"], "--baseline", f"{__name__}:BaselineFailingAtCall", "--regret-estimator", "paired", "--baseline-eval-episodes", "1"]
+    monkeypatch.setattr(sys, "argv", ["sac_continuous.py", *args])
+    with pytest.raises(SystemExit) as ended:
+        runpy.run_path(str(ROOT / "sac_continuous.py"), run_name="__main__")
+    assert ended.value.code == "sac_continuous: error: the baseline returned nan; expected 1 finite number(s) in env units"
+
+
+@pytest.mark.filterwarnings("ignore:.*(NaN value|not within the observation space).*")
+def test_a_nan_in_the_baselines_own_episode_is_named_as_the_envs(tmp_path, monkeypatch, capsys):
+    # seed 3's episode diverges; with --seed 1 the paired baseline episode from reset seed 3 is the third
+    monkeypatch.chdir(tmp_path)
+    args = [*without(SHORT_RUNS["sac_continuous"], "--total-timesteps"), "--total-timesteps", "1000", "--env-id", "DivergingPendulum-v0",
+            "--baseline", f"{__name__}:zero_torque", "--regret-estimator", "paired", "--baseline-eval-episodes", "1", "--save-model"]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", ["sac_continuous.py", *args])
+    with pytest.raises(SystemExit) as ended:
+        runpy.run_path(str(ROOT / "sac_continuous.py"), run_name="__main__")
+    assert ended.value.code == 1
+    err = capsys.readouterr().err
+    message = "the env returned a non-finite observation or reward in the baseline's episode from reset seed 3"
+    assert f"sac_continuous: error: {message}: training stopped at step 399 of 1,000" in err, err
