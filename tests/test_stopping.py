@@ -17,6 +17,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+import torch.utils.tensorboard as tensorboard
 from gymnasium.envs.classic_control.pendulum import PendulumEnv
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -38,6 +39,25 @@ def as_in_a_terminal() -> None:
     keeps an ignored signal ignored."""
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+@pytest.fixture
+def writers_closed(monkeypatch):
+    """A run that ends at set-up leaves its TensorBoard writer open, which is harmless in a process of its
+    own; in-process, its thread would write to runs/ relative to a directory the test has left. Closed
+    here, before monkeypatch changes back."""
+    opened = []
+
+    class Recorded(tensorboard.SummaryWriter):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            opened.append(self)
+
+    monkeypatch.setattr(tensorboard, "SummaryWriter", Recorded)
+    yield
+    assert opened, "the run made no writer through the patched class"
+    for writer in opened:
+        writer.close()
 
 
 @pytest.fixture
@@ -208,7 +228,7 @@ def test_a_diverged_env_ends_the_training_with_its_model_saved_unharmed(script, 
 
 @pytest.mark.filterwarnings("ignore:.*(NaN value|not within the observation space).*")
 @pytest.mark.parametrize("script", SCRIPTS)
-def test_a_nan_at_the_first_reset_is_a_one_line_error(script, tmp_path, monkeypatch):
+def test_a_nan_at_the_first_reset_is_a_one_line_error(script, tmp_path, monkeypatch, writers_closed):
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(DivergingPendulum, "at_reset", True)
     args = [*SHORT_RUNS[script], "--env-id", "DivergingPendulum-v0", "--seed", "3", "--baseline", f"{__name__}:zero_torque", "--regret-estimator", "off"]
@@ -263,7 +283,7 @@ def test_a_baseline_failing_mid_training_keeps_the_model(script, where, tmp_path
     assert_stopped_with_a_whole_model(script, capsys.readouterr().err, "the baseline returned nan; expected 1 finite number(s) in env units", step, tmp_path)
 
 
-def test_a_baseline_failing_in_its_first_paired_episode_is_a_one_line_error(sac, tmp_path, monkeypatch):
+def test_a_baseline_failing_in_its_first_paired_episode_is_a_one_line_error(sac, tmp_path, monkeypatch, writers_closed):
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(BaselineFailingAtCall, "limit", 300)  # after the 200 calls measuring it
     args = [*SHORT_RUNS["sac_continuous"], "--baseline", f"{__name__}:BaselineFailingAtCall", "--regret-estimator", "paired", "--baseline-eval-episodes", "1"]
