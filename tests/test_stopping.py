@@ -1,8 +1,9 @@
 """A training that must end early keeps what it learnt. Ctrl-C or SIGTERM ends the run at the training
-loop's next turn, and a NaN from the env ends it before the NaN reaches the buffer: the model is saved
-(--save-model), not evaluated, and the process exits with the status a shell gives a signalled
-process, or 1. A long run stopped by hand, by `timeout`, by a cluster's time limit or by a simulation
-that diverged keeps its model."""
+loop's next turn; a NaN from the env ends it before the NaN reaches the buffer; a baseline that fails
+(a bad action, a NaN in its own episode) ends it with its error. The model is saved (--save-model),
+not evaluated, and the process exits with the status a shell gives a signalled process, or 1. A long
+run stopped by hand, by `timeout`, by a cluster's time limit, by a simulation that diverged or by a
+baseline that broke keeps its model."""
 
 import os
 import re
