@@ -11,6 +11,7 @@ import signal
 import sys
 import threading
 import time
+import traceback
 from collections import deque
 from dataclasses import dataclass
 from typing import Callable, Literal, Optional
@@ -218,6 +219,18 @@ def load_baseline(spec: str, env_id: str) -> Optional[Callable]:
         return None
 
 
+def ask_baseline(baseline: Callable, obs: np.ndarray):
+    """The baseline's action at obs. Whatever a baseline raises (a user's controller at a state it was
+    not written for) is printed with its traceback and raised again as a ValueError that names it, so
+    that a run asking the baseline mid-training ends as for a bad action: keeping its model."""
+    try:
+        return baseline(obs)
+    except Exception as err:
+        where = traceback.extract_tb(err.__traceback__)[-1]
+        traceback.print_exc()
+        raise ValueError(f"the baseline raised {type(err).__name__} ({os.path.basename(where.filename)}, line {where.lineno}): {err}") from err
+
+
 def check_baseline_action(action, space: gym.spaces.Box) -> np.ndarray:
     """The baseline's action shaped like the action space (a bare number for a 1-D space is fine) and
     clipped to its bounds, as the agent's always is: the baseline measured is the one that is handed
@@ -239,7 +252,7 @@ def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.nd
     obs, _ = env.reset(seed=seed)
     first_obs, rewards, done = obs, [], False
     while not done:
-        action = baseline(obs)
+        action = ask_baseline(baseline, obs)
         if action is None:
             raise ValueError("the baseline returned None (it only intervenes), so it cannot be measured; use --regret-estimator off")
         obs, reward, terminated, truncated, _ = env.step(check_baseline_action(action, env.action_space))
@@ -895,20 +908,20 @@ if __name__ == "__main__":
         if stop.reason is not None:
             break
         # ALGO LOGIC: put action logic here
-        baseline_env_action = baseline(obs)  # Alg. 1, line 3: the baseline's action a^b
+        try:  # Alg. 1, line 3: the baseline's action a^b; None if it does not intervene
+            baseline_env_action = ask_baseline(baseline, obs)
+            baseline_action = None if baseline_env_action is None else to_policy_units(check_baseline_action(baseline_env_action, env.action_space), low, high)
+        except ValueError as err:  # at a state the agent led to, far from the baseline's own: keep the model
+            stop.end(f"{args.exp_name}: error: {err}", 1)
+            break
         with torch.inference_mode():
             mean, log_std = actor(torch.from_numpy(obs).float().unsqueeze(0))
             rl_action = torch.tanh(torch.normal(mean, log_std.exp()))[0].numpy()  # a^rl ~ pi(.|s_t)
         mean, log_std = mean[0].numpy().astype(np.float64), log_std[0].numpy().astype(np.float64)
-        if baseline_env_action is None:  # the baseline does not intervene: the agent acts, no gate
-            rl_acts, baseline_action = True, None
+        if baseline_action is None:  # the baseline does not intervene: the agent acts, no gate
+            rl_acts = True
             gate.skip()
         else:
-            try:
-                baseline_action = to_policy_units(check_baseline_action(baseline_env_action, env.action_space), low, high)
-            except ValueError as err:  # at a state the agent led to, far from the baseline's own: keep the model
-                stop.end(f"{args.exp_name}: error: {err}", 1)
-                break
             if args.intervention_mode:
                 rl_acts = False
             else:  # Alg. 1, line 4: the gate (Alg. 3)

@@ -11,6 +11,7 @@ import signal
 import sys
 import threading
 import time
+import traceback
 from dataclasses import dataclass
 from typing import Callable, Literal, Optional
 
@@ -178,6 +179,18 @@ def load_baseline(spec: str, env_id: str) -> Optional[Callable]:
         return None
 
 
+def ask_baseline(baseline: Callable, obs: np.ndarray):
+    """The baseline's action at obs. Whatever a baseline raises (a user's controller at a state it was
+    not written for) is printed with its traceback and raised again as a ValueError that names it, so
+    that a run asking the baseline mid-training ends as for a bad action: keeping its model."""
+    try:
+        return baseline(obs)
+    except Exception as err:
+        where = traceback.extract_tb(err.__traceback__)[-1]
+        traceback.print_exc()
+        raise ValueError(f"the baseline raised {type(err).__name__} ({os.path.basename(where.filename)}, line {where.lineno}): {err}") from err
+
+
 def check_baseline_action(action, space: gym.spaces.Box) -> np.ndarray:
     """The baseline's action shaped like the action space (a bare number for a 1-D space is fine) and
     clipped to its bounds, as the agent's always is: the baseline measured is the one that is handed
@@ -199,7 +212,7 @@ def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.nd
     obs, _ = env.reset(seed=seed)
     first_obs, rewards, done = obs, [], False
     while not done:
-        action = baseline(obs)
+        action = ask_baseline(baseline, obs)
         if action is None:
             raise ValueError("the baseline returned None (it only intervenes), so it cannot be measured; use --regret-estimator off")
         obs, reward, terminated, truncated, _ = env.step(check_baseline_action(action, env.action_space))

@@ -1,9 +1,9 @@
 """A training that must end early keeps what it learnt. Ctrl-C or SIGTERM ends the run at the training
 loop's next turn; a NaN from the env ends it before the NaN reaches the buffer; a baseline that fails
-(a bad action, a NaN in its own episode) ends it with its error. The model is saved (--save-model),
-not evaluated, and the process exits with the status a shell gives a signalled process, or 1. A long
-run stopped by hand, by `timeout`, by a cluster's time limit, by a simulation that diverged or by a
-baseline that broke keeps its model."""
+(a bad action, a NaN in its own episode, an exception of its own) ends it with its error. The model is
+saved (--save-model), not evaluated, and the process exits with the status a shell gives a signalled
+process, or 1. A long run stopped by hand, by `timeout`, by a cluster's time limit, by a simulation
+that diverged or by a baseline that broke keeps its model."""
 
 import os
 import re
@@ -240,17 +240,25 @@ def test_a_nan_at_the_first_reset_is_a_one_line_error(script, tmp_path, monkeypa
 
 
 class BaselineFailingAtCall:
-    """Zero torque until its `limit`-th call, then NaN: a controller that breaks at a state it was never
-    written for."""
+    """Zero torque until its `limit`-th call, then NaN, or (`raises`) a ZeroDivisionError of its own: a
+    controller that breaks at a state it was never written for."""
 
     limit = 1000
+    raises = False
 
     def __init__(self) -> None:
         self.calls = 0
 
     def __call__(self, obs: np.ndarray) -> float:
         self.calls += 1
+        if self.calls >= self.limit and self.raises:
+            return 1.0 / (self.calls - self.calls)
         return float("nan") if self.calls >= self.limit else 0.0
+
+
+RAISING_LINE = next(n for n, line in enumerate(open(__file__), 1) if "1.0 / (self.calls - self.calls)" in line and "next(" not in line)
+FAILURE = {False: "the baseline returned nan; expected 1 finite number(s) in env units",
+           True: f"the baseline raised ZeroDivisionError (test_stopping.py, line {RAISING_LINE}): float division by zero"}  # fmt: skip
 
 
 def assert_stopped_with_a_whole_model(script: str, err: str, message: str, step: int, tmp_path) -> None:
@@ -270,18 +278,21 @@ FAILING_CALL = {("sac_continuous", "paired"): (1000, 599), ("jirl_sac_continuous
                 ("jirl_sac_continuous", "every step"): (1000, 399), ("ppo_il", "paired"): (1000, 200), ("trpo_il", "paired"): (1000, 200)}  # fmt: skip
 
 
-@pytest.mark.parametrize("script, where", list(FAILING_CALL))
-def test_a_baseline_failing_mid_training_keeps_the_model(script, where, tmp_path, monkeypatch, capsys):
+@pytest.mark.parametrize("script, where, raises", [(*site, False) for site in FAILING_CALL] + [("sac_continuous", "paired", True), ("jirl_sac_continuous", "every step", True)])
+def test_a_baseline_failing_mid_training_keeps_the_model(script, where, raises, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     call, step = FAILING_CALL[script, where]
     monkeypatch.setattr(BaselineFailingAtCall, "limit", call)
+    monkeypatch.setattr(BaselineFailingAtCall, "raises", raises)
     args = [*without(SHORT_RUNS[script], "--total-timesteps"), "--total-timesteps", "1000", "--baseline", f"{__name__}:BaselineFailingAtCall",
             "--regret-estimator", "paired", "--baseline-eval-episodes", "1", "--save-model"]  # fmt: skip
     monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
     with pytest.raises(SystemExit) as ended:
         runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
     assert ended.value.code == 1
-    assert_stopped_with_a_whole_model(script, capsys.readouterr().err, "the baseline returned nan; expected 1 finite number(s) in env units", step, tmp_path)
+    err = capsys.readouterr().err
+    assert_stopped_with_a_whole_model(script, err, FAILURE[raises], step, tmp_path)
+    assert ("Traceback (most recent call last)" in err) == raises, err  # the user's own error is shown where it arose
 
 
 def test_a_baseline_failing_in_its_first_paired_episode_is_a_one_line_error(sac, tmp_path, monkeypatch, writers_closed):
@@ -292,6 +303,40 @@ def test_a_baseline_failing_in_its_first_paired_episode_is_a_one_line_error(sac,
     with pytest.raises(SystemExit) as ended:
         runpy.run_path(str(ROOT / "sac_continuous.py"), run_name="__main__")
     assert ended.value.code == "sac_continuous: error: the baseline returned nan; expected 1 finite number(s) in env units"
+
+
+@pytest.mark.parametrize("script", ["ppo_il", "jirl_sac_continuous"])
+def test_a_baseline_raising_before_training_is_its_traceback_and_a_one_line_error(script, tmp_path, monkeypatch, capsys, writers_closed):
+    # PPO+IL's 100th call falls in its imitation data, JIRL's in the baseline's measurement
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(BaselineFailingAtCall, "limit", 100)
+    monkeypatch.setattr(BaselineFailingAtCall, "raises", True)
+    args = [*SHORT_RUNS[script], "--baseline", f"{__name__}:BaselineFailingAtCall", "--baseline-eval-episodes", "1"]
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
+    with pytest.raises(SystemExit) as ended:
+        runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
+    assert ended.value.code == f"{script}: error: {FAILURE[True]}"
+    assert "ZeroDivisionError: float division by zero" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_ask_baseline_names_what_a_baseline_raises_and_where(script, capsys):
+    ask_baseline = load_script(script).ask_baseline
+    assert ask_baseline(lambda obs: obs * 2, np.array([1.0])) == pytest.approx([2.0])
+    assert ask_baseline(lambda obs: None, np.array([1.0])) is None  # an intervening baseline that does not intervene
+    failing = BaselineFailingAtCall()
+    failing.limit, failing.raises = 1, True
+    with pytest.raises(ValueError) as raised:
+        ask_baseline(failing, np.zeros(3))
+    assert str(raised.value) == FAILURE[True]
+    assert isinstance(raised.value.__cause__, ZeroDivisionError)
+    assert capsys.readouterr().err.rstrip().endswith("ZeroDivisionError: float division by zero")
+
+    def interrupted(obs):
+        raise KeyboardInterrupt  # not the baseline's failure: passes through as it is
+
+    with pytest.raises(KeyboardInterrupt):
+        ask_baseline(interrupted, np.zeros(3))
 
 
 @pytest.mark.filterwarnings("ignore:.*(NaN value|not within the observation space).*")
