@@ -112,9 +112,18 @@ def export(checkpoint: Path, out: Path = WEIGHTS, **metadata: Any) -> None:
         MeanPolicy(data["obs_dim"], len(data["action_low"]), data["hidden_size"]).load_state_dict(policy)
     except RuntimeError as err:
         raise ValueError(f"{checkpoint}: the actor's weights do not fit the stated sizes: {err}") from None
-    tmp = Path(f"{out}.tmp")
-    torch.save(weights, tmp)
-    tmp.replace(out)
+    tmp = Path(f"{out}.tmp")  # written whole, then renamed: a write that fails leaves the old weights as they were
+    try:
+        with open(tmp, "wb") as file:
+            torch.save(weights, file)
+        tmp.replace(out)
+    except BaseException as err:
+        tmp.unlink(missing_ok=True)  # a full disk stays full of half a file otherwise
+        if isinstance(err, RuntimeError) and isinstance(err.__context__, OSError):
+            err = err.__context__  # torch's zip writer reports a failed write as "unexpected pos"
+        if isinstance(err, OSError):
+            raise OSError(err.errno, f"cannot write {out}: {err.strerror}") from None
+        raise
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -128,7 +137,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     try:
         export(args.checkpoint, args.out, command=args.command, commit=args.commit)
-    except (ValueError, FileNotFoundError) as err:
+    except (ValueError, OSError) as err:  # a missing checkpoint, a full disk
         parser.exit(2, f"error: {err}\n")
     print(f"wrote {args.out}")
 

@@ -1,5 +1,6 @@
 """The Walker2D baseline: the shipped SAC actor, run deterministically with torch alone."""
 
+import errno
 import subprocess
 import sys
 
@@ -8,9 +9,9 @@ import pytest
 import torch
 
 from envs import get_baseline, make_env, rollout
-from envs.walker2d import WEIGHTS, Walker2DBaseline, export, load_policy
+from envs.walker2d import WEIGHTS, Walker2DBaseline, export, load_policy, main
 
-from conftest import ROOT, load_script
+from conftest import ROOT, fill_the_disk_for, load_script
 
 # BENCHMARKS.md: the shipped baseline's mean return over 10 episodes (seeds 0-9, min 1523.2, max 1569.6)
 MEASURED_RETURN = 1542.8
@@ -104,3 +105,24 @@ def test_export_round_trip_from_a_sac_checkpoint(tmp_path):
                                 cwd=ROOT, capture_output=True, text=True)  # fmt: skip
         assert result.returncode == 2 and message in result.stderr and "Traceback" not in result.stderr, result.stderr
     assert not (tmp_path / "bad.pt").exists() and not (tmp_path / "bad.pt.tmp").exists()
+
+
+def test_weights_the_disk_cannot_hold_leave_the_old_ones_and_no_half_file(tmp_path, monkeypatch, capsys):
+    sac = load_script("sac_continuous")
+    env = make_env("Walker2DBulletEnv-v0")
+    checkpoint, out = tmp_path / "model.cleanrl_model", tmp_path / "weights.pt"
+    sac.save_checkpoint(str(checkpoint), "Walker2DBulletEnv-v0", env, sac.Actor(22, 6, 16), sac.SoftQNetwork(22, 6, 16), sac.Args(hidden_size=16))
+    env.close()
+    out.write_bytes(b"the weights exported before")
+    fill_the_disk_for(monkeypatch, r"weights\.pt\.tmp")
+    with pytest.raises(OSError) as raised:  # torch.save alone raises RuntimeError("... unexpected pos ...")
+        export(checkpoint, out)
+    assert raised.value.errno == errno.ENOSPC
+    with pytest.raises(SystemExit) as ended:
+        main(["export", str(checkpoint), "--out", str(out)])
+    assert ended.value.code == 2
+    assert capsys.readouterr().err == f"error: [Errno 28] cannot write {out}: No space left on device\n"
+    assert out.read_bytes() == b"the weights exported before" and not (tmp_path / "weights.pt.tmp").exists()
+    monkeypatch.undo()
+    export(checkpoint, out)  # the same call where there is room
+    assert Walker2DBaseline(out).metadata["seed"] == 1
