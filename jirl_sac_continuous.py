@@ -921,23 +921,22 @@ if __name__ == "__main__":
         if baseline_action is None:  # the baseline does not intervene: the agent acts, no gate
             rl_acts = True
             gate.skip()
-        else:
-            if args.intervention_mode:
-                rl_acts = False
-            else:  # Alg. 1, line 4: the gate (Alg. 3)
-                log_prob_baseline = squashed_log_prob(mean, log_std, baseline_action)
-                rho = divergence(mean, log_std, baseline_action)
-                if args.guidance_schedule == "earned":
-                    c = earned.c()
-                else:
-                    c = guidance_c(args.gate_c, global_step, args.guidance_steps, args.guidance_schedule)
-                guidance_weight = fade.weight(c)
-                rl_acts = gate.decide(log_prob_baseline, rho, c)
-                if rl_acts and c == 0.0 and args.deterministic_after_guidance:
-                    rl_action = np.tanh(mean).astype(np.float32)
-                gate_log_prob_sum += log_prob_baseline
-                gate_log_rho_sum += gate.log_rhos[-1]  # log rho+, as the gate just computed it
-                gate_terms += 1
+        elif args.intervention_mode:
+            rl_acts = False
+        else:  # Alg. 1, line 4: the gate (Alg. 3)
+            log_prob_baseline = squashed_log_prob(mean, log_std, baseline_action)
+            rho = divergence(mean, log_std, baseline_action)
+            if args.guidance_schedule == "earned":
+                c = earned.c()
+            else:
+                c = guidance_c(args.gate_c, global_step, args.guidance_steps, args.guidance_schedule)
+            guidance_weight = fade.weight(c)
+            rl_acts = gate.decide(log_prob_baseline, rho, c)
+            if rl_acts and c == 0.0 and args.deterministic_after_guidance:
+                rl_action = np.tanh(mean).astype(np.float32)
+            gate_log_prob_sum += log_prob_baseline
+            gate_log_rho_sum += gate.log_rhos[-1]  # log rho+, as the gate just computed it
+            gate_terms += 1
         action = rl_action if rl_acts else baseline_action.astype(np.float32)
         control_switches += gate.record(rl_acts)
         rl_control.append(rl_acts)
