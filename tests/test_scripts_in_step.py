@@ -1,6 +1,6 @@
 """The scripts are kept as near-copies: `diff sac_continuous.py jirl_sac_continuous.py` shows JIRL only,
 `diff ppo_il.py trpo_il.py` shows TRPO only, and the regret code every script repeats is the same text in
-all four. A change made to one copy only fails here."""
+all four; `.ci/run` runs the README's test command as printed. A change made to one copy only fails here."""
 
 import ast
 
@@ -81,3 +81,9 @@ def test_trpo_il_repeats_every_ppo_il_definition_but_its_settings():
     assert set(ppo) <= set(trpo), f"missing from trpo_il.py: {sorted(set(ppo) - set(trpo))}"
     drifted = [name for name in ppo if name not in settings and ppo[name] != trpo[name]]
     assert drifted == [], f"edit these in both scripts: {drifted}"
+
+
+def test_ci_runs_the_readmes_test_command_as_printed():
+    readme = (ROOT / "README.md").read_text()
+    command = readme.split("Run the tests (after the first command):", 1)[1].split("```bash\n", 1)[1].split("\n```", 1)[0]
+    assert " -m pytest " in command and command in (ROOT / ".ci" / "run").read_text().splitlines()
