@@ -49,11 +49,13 @@ def sac():
     return load_script("sac_continuous")
 
 
-def small_checkpoint(sac, path: Path):
-    """A 16-unit Pendulum-v1 checkpoint written by sac_continuous.py's save_checkpoint; returns its actor."""
-    env = sac.make_env("Pendulum-v1", 0)
-    actor, qf = sac.Actor(3, 1, 16), sac.SoftQNetwork(3, 1, 16)
-    sac.save_checkpoint(str(path), "Pendulum-v1", env, actor, qf, sac.Args(hidden_size=16))
+def small_checkpoint(sac, path: Path, env_id: str = "Pendulum-v1", **args):
+    """A 16-unit checkpoint for env_id written by sac_continuous.py's save_checkpoint, with `args` among
+    its Args; returns its actor."""
+    env = sac.make_env(env_id, 0)
+    obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    actor, qf = sac.Actor(obs_dim, act_dim, 16), sac.SoftQNetwork(obs_dim, act_dim, 16)
+    sac.save_checkpoint(str(path), env_id, env, actor, qf, sac.Args(hidden_size=16, **args))
     env.close()
     return actor
 

@@ -11,7 +11,7 @@ import torch
 from envs import get_baseline, make_env, rollout
 from envs.walker2d import WEIGHTS, Walker2DBaseline, export, load_policy, main
 
-from conftest import ROOT, fill_the_disk_for, load_script
+from conftest import ROOT, fill_the_disk_for, load_script, small_checkpoint
 
 # BENCHMARKS.md: the shipped baseline's mean return over 10 episodes (seeds 0-9, min 1523.2, max 1569.6)
 MEASURED_RETURN = 1542.8
@@ -79,11 +79,8 @@ def test_bad_files_give_clear_errors_and_lose_nothing(tmp_path):
 
 def test_export_round_trip_from_a_sac_checkpoint(tmp_path):
     """A checkpoint written by sac_continuous.py exports to weights that act like its actor."""
-    sac = load_script("sac_continuous")
-    env = make_env("Walker2DBulletEnv-v0")
-    actor, qf = sac.Actor(22, 6, 16), sac.SoftQNetwork(22, 6, 16)
     checkpoint = tmp_path / "model.cleanrl_model"
-    sac.save_checkpoint(str(checkpoint), "Walker2DBulletEnv-v0", env, actor, qf, sac.Args(hidden_size=16, total_timesteps=123))
+    actor = small_checkpoint(load_script("sac_continuous"), checkpoint, "Walker2DBulletEnv-v0", total_timesteps=123)
     out = tmp_path / "weights.pt"
     result = subprocess.run([sys.executable, "-m", "envs.walker2d", "export", str(checkpoint), "--out", str(out), "--command", "cmd", "--commit", "abc1234"],
                             cwd=ROOT, capture_output=True, text=True)  # fmt: skip
@@ -94,7 +91,6 @@ def test_export_round_trip_from_a_sac_checkpoint(tmp_path):
     with torch.no_grad():
         _, _, expected = actor.get_action(torch.from_numpy(obs).unsqueeze(0))
     np.testing.assert_allclose(baseline(obs), expected[0].numpy(), atol=1e-6)
-    env.close()
     saved = torch.load(checkpoint, weights_only=True)
     no_args, resized = tmp_path / "no_args.cleanrl_model", tmp_path / "resized.cleanrl_model"
     torch.save({k: v for k, v in saved.items() if k != "args"}, no_args)
@@ -108,11 +104,8 @@ def test_export_round_trip_from_a_sac_checkpoint(tmp_path):
 
 
 def test_weights_the_disk_cannot_hold_leave_the_old_ones_and_no_half_file(tmp_path, monkeypatch, capsys):
-    sac = load_script("sac_continuous")
-    env = make_env("Walker2DBulletEnv-v0")
     checkpoint, out = tmp_path / "model.cleanrl_model", tmp_path / "weights.pt"
-    sac.save_checkpoint(str(checkpoint), "Walker2DBulletEnv-v0", env, sac.Actor(22, 6, 16), sac.SoftQNetwork(22, 6, 16), sac.Args(hidden_size=16))
-    env.close()
+    small_checkpoint(load_script("sac_continuous"), checkpoint, "Walker2DBulletEnv-v0")
     out.write_bytes(b"the weights exported before")
     fill_the_disk_for(monkeypatch, r"weights\.pt\.tmp")
     with pytest.raises(OSError) as raised:  # torch.save alone raises RuntimeError("... unexpected pos ...")
