@@ -159,6 +159,49 @@ class Args:
             raise ValueError("; ".join(problems))
 
 
+def raised(err: Exception) -> str:
+    """'raised {Type} ({file}, line {n})' for an exception from a user's code (an env, a baseline), after
+    printing its traceback: the one line that ends the run then says where it came from."""
+    where = traceback.extract_tb(err.__traceback__)[-1]
+    traceback.print_exc()
+    return f"raised {type(err).__name__} ({os.path.basename(where.filename)}, line {where.lineno})"
+
+
+def non_finite(obs: np.ndarray, reward: float = 0.0) -> bool:
+    """Whether an env returned NaN or infinity (a simulation that diverged); one such number learnt
+    from turns every weight to NaN."""
+    return not (math.isfinite(reward) and np.isfinite(obs).all())
+
+
+class CheckedEnv(gym.Wrapper):
+    """The env as the scripts step it: an exception of its own (a simulator that lost its connection,
+    hours into a run) and a NaN or infinity it returns both come out as a ValueError naming the env
+    and the episode's reset seed, on which the training loop ends keeping its model."""
+
+    def __init__(self, env: gym.Env, env_id: str):
+        super().__init__(env)
+        self.env_id, self.episode = env_id, "an unseeded reset"
+
+    def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
+        self.episode = "an unseeded reset" if seed is None else f"reset seed {seed}"
+        try:
+            obs, info = self.env.reset(seed=seed, options=options)
+        except Exception as err:
+            raise ValueError(f"{self.env_id} {raised(err)} at {self.episode}: {err}") from err
+        if non_finite(obs):
+            raise ValueError(f"{self.env_id} returned a non-finite observation at {self.episode}")
+        return obs, info
+
+    def step(self, action):
+        try:
+            obs, reward, terminated, truncated, info = self.env.step(action)
+        except Exception as err:
+            raise ValueError(f"{self.env_id} {raised(err)} in the episode from {self.episode}: {err}") from err
+        if non_finite(obs, reward):
+            raise ValueError(f"{self.env_id} returned a non-finite observation or reward in the episode from {self.episode}")
+        return obs, reward, terminated, truncated, info
+
+
 def make_env(env_id: str, seed: int, capture_video: bool = False, run_name: str = "") -> gym.Env:
     """One env (no vector wrapper: episodes are reset explicitly, so there is no autoreset to undo)."""
     render = {"render_mode": "rgb_array"} if capture_video else {}  # only when recording: an env whose constructor has no render_mode still works
@@ -191,7 +234,7 @@ def make_env(env_id: str, seed: int, capture_video: bool = False, run_name: str 
         except ImportError:
             raise ValueError("--capture-video needs moviepy (pip install moviepy)") from None
         env = gym.wrappers.RecordVideo(env, f"videos/{run_name}")
-    return env
+    return CheckedEnv(env, env_id)
 
 
 def load_baseline(spec: str, env_id: str) -> Optional[Callable]:
@@ -226,9 +269,7 @@ def ask_baseline(baseline: Callable, obs: np.ndarray):
     try:
         return baseline(obs)
     except Exception as err:
-        where = traceback.extract_tb(err.__traceback__)[-1]
-        traceback.print_exc()
-        raise ValueError(f"the baseline raised {type(err).__name__} ({os.path.basename(where.filename)}, line {where.lineno}): {err}") from err
+        raise ValueError(f"the baseline {raised(err)}: {err}") from err
 
 
 def check_baseline_action(action, space: gym.spaces.Box) -> np.ndarray:
@@ -246,7 +287,8 @@ def check_baseline_action(action, space: gym.spaces.Box) -> np.ndarray:
 
 
 def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """One baseline episode from env.reset(seed=seed): (initial observation, reward of every step)."""
+    """One baseline episode from env.reset(seed=seed): (initial observation, reward of every step).
+    env is make_env's, which raises on a NaN: a NaN regret would hide every later episode's."""
     if hasattr(baseline, "reset"):
         baseline.reset()
     obs, _ = env.reset(seed=seed)
@@ -256,8 +298,6 @@ def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.nd
         if action is None:
             raise ValueError("the baseline returned None (it only intervenes), so it cannot be measured; use --regret-estimator off")
         obs, reward, terminated, truncated, _ = env.step(check_baseline_action(action, env.action_space))
-        if non_finite(obs, reward):  # a NaN regret would hide every later episode's
-            raise ValueError(f"the env returned a non-finite observation or reward in the baseline's episode from reset seed {seed}")
         rewards.append(float(reward))
         done = terminated or truncated
         if not done and len(rewards) == EPISODE_LIMIT:  # a baseline that never fails would run for ever
@@ -773,12 +813,6 @@ def claim_run_dir(run_name: str) -> str:
             pass
 
 
-def non_finite(obs: np.ndarray, reward: float = 0.0) -> bool:
-    """Whether an env returned NaN or infinity (a simulation that diverged); one such number learnt
-    from turns every weight to NaN."""
-    return not (math.isfinite(reward) and np.isfinite(obs).all())
-
-
 class StopRequest:
     """Why the training ends before its last step: Ctrl-C (SIGINT) or SIGTERM (`kill`, `timeout`, a
     cluster's time limit), caught so that the run ends at the training loop's next turn instead of at
@@ -883,9 +917,10 @@ if __name__ == "__main__":
     # TRY NOT TO MODIFY: start the game
     start_time = time.time()
     episode, episode_rewards = 0, []
-    obs, _ = env.reset(seed=args.seed)
-    if non_finite(obs):
-        raise SystemExit(f"{args.exp_name}: error: {args.env_id} returned a non-finite observation at its first reset")
+    try:
+        obs, _ = env.reset(seed=args.seed)
+    except ValueError as err:  # a NaN, or an exception of the env's own (CheckedEnv)
+        raise SystemExit(f"{args.exp_name}: error: {err}")
     if estimator == "paired":
         t0 = time.time()
         try:
@@ -903,7 +938,7 @@ if __name__ == "__main__":
     if hasattr(baseline, "reset"):
         baseline.reset()
 
-    stop = StopRequest()  # from here Ctrl-C, SIGTERM, a NaN from the env or a failing baseline ends the training, keeping what was learnt
+    stop = StopRequest()  # from here Ctrl-C, SIGTERM, or an env or a baseline that fails ends the training, keeping what was learnt
     for global_step in range(args.total_timesteps):
         if stop.reason is not None:
             break
@@ -942,9 +977,10 @@ if __name__ == "__main__":
         rl_control.append(rl_acts)
 
         # TRY NOT TO MODIFY: execute the game and log data.
-        next_obs, reward, terminated, truncated, _ = env.step(to_env_units(action, low, high))
-        if non_finite(next_obs, reward):  # a simulation that diverged: none of it may reach the buffer
-            stop.end(f"{args.exp_name}: error: {args.env_id} returned a non-finite observation or reward", 1)
+        try:
+            next_obs, reward, terminated, truncated, _ = env.step(to_env_units(action, low, high))
+        except ValueError as err:  # a diverged simulation (its NaN never reaches the buffer) or a failing env: keep the model
+            stop.end(f"{args.exp_name}: error: {err}", 1)
             break
         episode_rewards.append(float(reward))
 
@@ -990,15 +1026,16 @@ if __name__ == "__main__":
             episode, episode_rewards = episode + 1, []
             previous_rl_transition = None
             gate.new_episode()
-            obs, _ = env.reset(seed=args.seed + episode)
-            if non_finite(obs):
-                stop.end(f"{args.exp_name}: error: {args.env_id} returned a non-finite observation at a reset", 1)
+            try:
+                obs, _ = env.reset(seed=args.seed + episode)
+            except ValueError as err:
+                stop.end(f"{args.exp_name}: error: {err}", 1)
                 break
             if estimator == "paired":
                 t0 = time.time()
                 try:
                     _, baseline_rewards = baseline_rollout(shadow_env, baseline, args.seed + episode)
-                except ValueError as err:  # the baseline failed (a bad action, a NaN from the env) after hours, maybe: keep the model
+                except ValueError as err:  # the baseline or the env failed (a bad action, a NaN, an exception) after hours, maybe: keep the model
                     stop.end(f"{args.exp_name}: error: {err}", 1)
                     break
                 baseline_seconds += time.time() - t0

@@ -169,6 +169,49 @@ def resolve_hyperparameters(args: Args) -> Args:
     return args
 
 
+def raised(err: Exception) -> str:
+    """'raised {Type} ({file}, line {n})' for an exception from a user's code (an env, a baseline), after
+    printing its traceback: the one line that ends the run then says where it came from."""
+    where = traceback.extract_tb(err.__traceback__)[-1]
+    traceback.print_exc()
+    return f"raised {type(err).__name__} ({os.path.basename(where.filename)}, line {where.lineno})"
+
+
+def non_finite(obs: np.ndarray, reward: float = 0.0) -> bool:
+    """Whether an env returned NaN or infinity (a simulation that diverged); one such number learnt
+    from turns every weight to NaN."""
+    return not (math.isfinite(reward) and np.isfinite(obs).all())
+
+
+class CheckedEnv(gym.Wrapper):
+    """The env as the scripts step it: an exception of its own (a simulator that lost its connection,
+    hours into a run) and a NaN or infinity it returns both come out as a ValueError naming the env
+    and the episode's reset seed, on which the training loop ends keeping its model."""
+
+    def __init__(self, env: gym.Env, env_id: str):
+        super().__init__(env)
+        self.env_id, self.episode = env_id, "an unseeded reset"
+
+    def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
+        self.episode = "an unseeded reset" if seed is None else f"reset seed {seed}"
+        try:
+            obs, info = self.env.reset(seed=seed, options=options)
+        except Exception as err:
+            raise ValueError(f"{self.env_id} {raised(err)} at {self.episode}: {err}") from err
+        if non_finite(obs):
+            raise ValueError(f"{self.env_id} returned a non-finite observation at {self.episode}")
+        return obs, info
+
+    def step(self, action):
+        try:
+            obs, reward, terminated, truncated, info = self.env.step(action)
+        except Exception as err:
+            raise ValueError(f"{self.env_id} {raised(err)} in the episode from {self.episode}: {err}") from err
+        if non_finite(obs, reward):
+            raise ValueError(f"{self.env_id} returned a non-finite observation or reward in the episode from {self.episode}")
+        return obs, reward, terminated, truncated, info
+
+
 def make_env(env_id: str, seed: int, capture_video: bool = False, run_name: str = "") -> gym.Env:
     """One env (no vector wrapper: episodes are reset explicitly, so there is no autoreset to undo)."""
     render = {"render_mode": "rgb_array"} if capture_video else {}  # only when recording: an env whose constructor has no render_mode still works
@@ -201,7 +244,7 @@ def make_env(env_id: str, seed: int, capture_video: bool = False, run_name: str 
         except ImportError:
             raise ValueError("--capture-video needs moviepy (pip install moviepy)") from None
         env = gym.wrappers.RecordVideo(env, f"videos/{run_name}")
-    return env
+    return CheckedEnv(env, env_id)
 
 
 def load_baseline(spec: str, env_id: str) -> Optional[Callable]:
@@ -236,9 +279,7 @@ def ask_baseline(baseline: Callable, obs: np.ndarray):
     try:
         return baseline(obs)
     except Exception as err:
-        where = traceback.extract_tb(err.__traceback__)[-1]
-        traceback.print_exc()
-        raise ValueError(f"the baseline raised {type(err).__name__} ({os.path.basename(where.filename)}, line {where.lineno}): {err}") from err
+        raise ValueError(f"the baseline {raised(err)}: {err}") from err
 
 
 def check_baseline_action(action, space: gym.spaces.Box) -> np.ndarray:
@@ -256,7 +297,8 @@ def check_baseline_action(action, space: gym.spaces.Box) -> np.ndarray:
 
 
 def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """One baseline episode from env.reset(seed=seed): (initial observation, reward of every step)."""
+    """One baseline episode from env.reset(seed=seed): (initial observation, reward of every step).
+    env is make_env's, which raises on a NaN: a NaN regret would hide every later episode's."""
     if hasattr(baseline, "reset"):
         baseline.reset()
     obs, _ = env.reset(seed=seed)
@@ -266,8 +308,6 @@ def baseline_rollout(env: gym.Env, baseline: Callable, seed: int) -> tuple[np.nd
         if action is None:
             raise ValueError("the baseline returned None (it only intervenes), so it cannot be measured; use --regret-estimator off")
         obs, reward, terminated, truncated, _ = env.step(check_baseline_action(action, env.action_space))
-        if non_finite(obs, reward):  # a NaN regret would hide every later episode's
-            raise ValueError(f"the env returned a non-finite observation or reward in the baseline's episode from reset seed {seed}")
         rewards.append(float(reward))
         done = terminated or truncated
         if not done and len(rewards) == EPISODE_LIMIT:  # a baseline that never fails would run for ever
@@ -569,12 +609,6 @@ def claim_run_dir(run_name: str) -> str:
             pass
 
 
-def non_finite(obs: np.ndarray, reward: float = 0.0) -> bool:
-    """Whether an env returned NaN or infinity (a simulation that diverged); one such number learnt
-    from turns every weight to NaN."""
-    return not (math.isfinite(reward) and np.isfinite(obs).all())
-
-
 class StopRequest:
     """Why the training ends before its last step: Ctrl-C (SIGINT) or SIGTERM (`kill`, `timeout`, a
     cluster's time limit), caught so that the run ends at the training loop's next turn instead of at
@@ -708,9 +742,10 @@ if __name__ == "__main__":
     global_step = 0
     start_time = time.time()
     episode, episode_rewards = 0, []
-    raw_obs, _ = env.reset(seed=args.seed)
-    if non_finite(raw_obs):
-        raise SystemExit(f"{args.exp_name}: error: {args.env_id} returned a non-finite observation at its first reset")
+    try:
+        raw_obs, _ = env.reset(seed=args.seed)
+    except ValueError as err:  # a NaN, or an exception of the env's own (CheckedEnv)
+        raise SystemExit(f"{args.exp_name}: error: {err}")
     if estimator == "paired":
         t0 = time.time()
         try:
@@ -733,7 +768,7 @@ if __name__ == "__main__":
 
     next_obs = observe(raw_obs)
     next_done = 0.0
-    stop = StopRequest()  # from here Ctrl-C, SIGTERM, a NaN from the env or a failing baseline ends the training, keeping what was learnt
+    stop = StopRequest()  # from here Ctrl-C, SIGTERM, or an env or a baseline that fails ends the training, keeping what was learnt
     for iteration in range(1, num_iterations + 1):
         if stop.reason is not None:
             break
@@ -755,9 +790,10 @@ if __name__ == "__main__":
             logprobs[step] = logprob[0]
 
             # TRY NOT TO MODIFY: execute the game and log data.
-            raw_obs, reward, terminated, truncated, _ = env.step(to_env_units(action[0].numpy(), low, high))
-            if non_finite(raw_obs, reward):  # a simulation that diverged: none of it may reach the rollout
-                stop.end(f"{args.exp_name}: error: {args.env_id} returned a non-finite observation or reward", 1)
+            try:
+                raw_obs, reward, terminated, truncated, _ = env.step(to_env_units(action[0].numpy(), low, high))
+            except ValueError as err:  # a diverged simulation (its NaN never reaches the rollout) or a failing env: keep the model
+                stop.end(f"{args.exp_name}: error: {err}", 1)
                 break
             episode_rewards.append(float(reward))
             if obs_rms is not None:
@@ -788,15 +824,16 @@ if __name__ == "__main__":
                     writer.add_scalar("charts/baseline_regret", baseline_regret, global_step)
                     writer.add_scalar("charts/baseline_regret_per_step", baseline_regret_per_step, global_step)
                 episode, episode_rewards, discounted_return = episode + 1, [], 0.0
-                raw_obs, _ = env.reset(seed=args.seed + episode)
-                if non_finite(raw_obs):
-                    stop.end(f"{args.exp_name}: error: {args.env_id} returned a non-finite observation at a reset", 1)
+                try:
+                    raw_obs, _ = env.reset(seed=args.seed + episode)
+                except ValueError as err:
+                    stop.end(f"{args.exp_name}: error: {err}", 1)
                     break
                 if estimator == "paired":
                     t0 = time.time()
                     try:
                         _, baseline_rewards = baseline_rollout(shadow_env, baseline, args.seed + episode)
-                    except ValueError as err:  # the baseline failed (a bad action, a NaN from the env) after hours, maybe: keep the model
+                    except ValueError as err:  # the baseline or the env failed (a bad action, a NaN, an exception) after hours, maybe: keep the model
                         stop.end(f"{args.exp_name}: error: {err}", 1)
                         break
                     baseline_seconds += time.time() - t0

@@ -1,9 +1,10 @@
 """A training that must end early keeps what it learnt. Ctrl-C or SIGTERM ends the run at the training
-loop's next turn; a NaN from the env ends it before the NaN reaches the buffer; a baseline that fails
-(a bad action, a NaN in its own episode, an exception of its own) ends it with its error. The model is
-saved (--save-model), not evaluated, and the process exits with the status a shell gives a signalled
-process, or 1. A long run stopped by hand, by `timeout`, by a cluster's time limit, by a simulation
-that diverged or by a baseline that broke keeps its model."""
+loop's next turn; an env that fails (a NaN, an exception of its own) ends it before anything from it
+reaches the buffer; a baseline that fails (a bad action, an exception of its own, its env failing in
+its own episode) ends it with its error. The model is saved (--save-model), not evaluated, and the
+process exits with the status a shell gives a signalled process, or 1. A long run stopped by hand, by
+`timeout`, by a cluster's time limit, by a simulation that diverged or broke, or by a baseline that
+broke keeps its model."""
 
 import os
 import re
@@ -172,25 +173,84 @@ def test_non_finite_finds_nan_and_infinity_in_an_observation_or_a_reward(sac):
 
 
 class DivergingPendulum(PendulumEnv):
-    """Pendulum-v1 whose episode from reset seed 3 (a run's third, at the default --seed 1) diverges:
-    NaN at its 50th step, or at the reset itself."""
+    """Pendulum-v1 whose episode from reset seed 3 (a run's third, at the default --seed 1) fails at its
+    50th step, or at the reset itself: it diverges (NaN) or, with `raises`, raises an error of its own
+    (a simulator that lost its connection)."""
 
     at_reset = False
+    raises = False
+
+    def fail(self, obs: np.ndarray) -> np.ndarray:
+        if self.raises:
+            raise ConnectionError("lost the simulator")
+        return obs * np.nan
 
     def reset(self, *, seed=None, options=None):
         obs, info = super().reset(seed=seed, options=options)
         self.diverging, self.t = seed == 3, 0
-        return (obs * np.nan if self.diverging and self.at_reset else obs), info
+        return (self.fail(obs) if self.diverging and self.at_reset else obs), info
 
     def step(self, action):
         obs, reward, terminated, truncated, info = super().step(action)
         self.t += 1
         if self.diverging and self.t == 50:
-            return obs * np.nan, float("nan"), terminated, truncated, info
+            return self.fail(obs), float("nan"), terminated, truncated, info
         return obs, reward, terminated, truncated, info
 
 
+ENV_RAISING_LINE = next(n for n, line in enumerate(open(__file__), 1) if 'raise ConnectionError("lost the simulator")' in line and "next(" not in line)
+
+
+def env_failure(at_reset: bool, raises: bool) -> str:
+    """The line DivergingPendulum's failure in the episode from reset seed 3 ends a run with."""
+    if raises:
+        where = "at reset seed 3" if at_reset else "in the episode from reset seed 3"
+        return f"DivergingPendulum-v0 raised ConnectionError (test_stopping.py, line {ENV_RAISING_LINE}) {where}: lost the simulator"
+    what = "a non-finite observation at reset seed 3" if at_reset else "a non-finite observation or reward in the episode from reset seed 3"
+    return f"DivergingPendulum-v0 returned {what}"
+
+
 gym.register("DivergingPendulum-v0", entry_point=DivergingPendulum, max_episode_steps=200)
+
+
+@pytest.mark.filterwarnings("ignore:.*(NaN value|not within the observation space).*")
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_checked_env_passes_a_working_env_through_and_names_its_failures(script, monkeypatch, capsys):
+    checked = load_script(script).CheckedEnv(gym.make("DivergingPendulum-v0"), "DivergingPendulum-v0")
+    bare = gym.make("Pendulum-v1")
+    for seed in (1, 3):  # what a working env returns passes unchanged (seed 3 fails only at its 50th step)
+        for got, want in zip(checked.reset(seed=seed), bare.reset(seed=seed)):
+            np.testing.assert_equal(got, want)
+        for t in range(49):
+            action = np.array([np.sin(t)], dtype=np.float32)
+            for got, want in zip(checked.step(action), bare.step(action)):
+                np.testing.assert_equal(got, want)
+    with pytest.raises(ValueError, match=re.escape(env_failure(at_reset=False, raises=False)) + "$"):
+        checked.step(np.zeros(1))
+    checked.reset()  # unseeded: the message says so
+    checked.unwrapped.diverging = True
+    checked.unwrapped.t = 49
+    with pytest.raises(ValueError, match="^DivergingPendulum-v0 returned a non-finite observation or reward in the episode from an unseeded reset$"):
+        checked.step(np.zeros(1))
+
+    monkeypatch.setattr(DivergingPendulum, "raises", True)
+    capsys.readouterr()
+    for at_reset in (False, True):
+        monkeypatch.setattr(DivergingPendulum, "at_reset", at_reset)
+        with pytest.raises(ValueError) as failed:
+            checked.reset(seed=3)
+            for _ in range(50):
+                checked.step(np.zeros(1))
+        assert str(failed.value) == env_failure(at_reset, raises=True)
+        assert isinstance(failed.value.__cause__, ConnectionError)
+        assert capsys.readouterr().err.rstrip().endswith("ConnectionError: lost the simulator")  # its traceback, printed
+
+    def interrupted(self, obs):
+        raise KeyboardInterrupt  # not the env's failure: passes through as it is
+
+    monkeypatch.setattr(DivergingPendulum, "fail", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        checked.reset(seed=3)
 
 
 def zero_torque(obs: np.ndarray) -> np.ndarray:
@@ -198,11 +258,13 @@ def zero_torque(obs: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.filterwarnings("ignore:.*(NaN value|not within the observation space).*")  # Gymnasium's env checker says so too
+@pytest.mark.parametrize("raises", [False, True], ids=["nan", "raises"])
 @pytest.mark.parametrize("at_reset", [False, True], ids=["step", "reset"])
 @pytest.mark.parametrize("script", SCRIPTS)
-def test_a_diverged_env_ends_the_training_with_its_model_saved_unharmed(script, at_reset, tmp_path, monkeypatch, capsys):
+def test_a_failing_env_ends_the_training_with_its_model_saved_unharmed(script, at_reset, raises, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(DivergingPendulum, "at_reset", at_reset)
+    monkeypatch.setattr(DivergingPendulum, "raises", raises)
     args = [*without(SHORT_RUNS[script], "--total-timesteps"), "--total-timesteps", "1000", "--env-id", "DivergingPendulum-v0",
             "--baseline", f"{__name__}:zero_torque", "--regret-estimator", "off", "--save-model"]  # fmt: skip
     monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
@@ -212,9 +274,9 @@ def test_a_diverged_env_ends_the_training_with_its_model_saved_unharmed(script, 
     out, err = capsys.readouterr()
     # the reset after the second episode's last step, or the third episode's 50th step (SAC counts steps from 0, PPO from 1)
     step = (399 if at_reset else 449) + script.endswith("_il")
-    what = "a non-finite observation at a reset" if at_reset else "a non-finite observation or reward"
     total = "1,000" if script.startswith(("sac", "jirl")) else "896"  # PPO and TRPO train whole rollouts of 128
-    assert f"{script}: error: DivergingPendulum-v0 returned {what}: training stopped at step {step} of {total}; saving the model without evaluating it" in err
+    assert f"{script}: error: {env_failure(at_reset, raises)}: training stopped at step {step} of {total}; saving the model without evaluating it" in err
+    assert ("ConnectionError: lost the simulator" in err) == raises, err  # the env's own error is shown where it arose
     assert "eval:" not in out
     (run_dir,) = (tmp_path / "runs").iterdir()
     checkpoint = torch.load(run_dir / f"{script}.cleanrl_model", weights_only=False)
@@ -228,15 +290,17 @@ def test_a_diverged_env_ends_the_training_with_its_model_saved_unharmed(script, 
 
 
 @pytest.mark.filterwarnings("ignore:.*(NaN value|not within the observation space).*")
+@pytest.mark.parametrize("raises", [False, True], ids=["nan", "raises"])
 @pytest.mark.parametrize("script", SCRIPTS)
-def test_a_nan_at_the_first_reset_is_a_one_line_error(script, tmp_path, monkeypatch, writers_closed):
+def test_an_env_failing_at_the_first_reset_is_a_one_line_error(script, raises, tmp_path, monkeypatch, writers_closed):
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(DivergingPendulum, "at_reset", True)
+    monkeypatch.setattr(DivergingPendulum, "raises", raises)
     args = [*SHORT_RUNS[script], "--env-id", "DivergingPendulum-v0", "--seed", "3", "--baseline", f"{__name__}:zero_torque", "--regret-estimator", "off"]
     monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
     with pytest.raises(SystemExit) as ended:
         runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
-    assert ended.value.code == f"{script}: error: DivergingPendulum-v0 returned a non-finite observation at its first reset"
+    assert ended.value.code == f"{script}: error: {env_failure(at_reset=True, raises=raises)}"
 
 
 class BaselineFailingAtCall:
@@ -340,9 +404,12 @@ def test_ask_baseline_names_what_a_baseline_raises_and_where(script, capsys):
 
 
 @pytest.mark.filterwarnings("ignore:.*(NaN value|not within the observation space).*")
-def test_a_nan_in_the_baselines_own_episode_is_named_as_the_envs(tmp_path, monkeypatch, capsys):
-    # seed 3's episode diverges; with --seed 1 the paired baseline episode from reset seed 3 is the third
+@pytest.mark.parametrize("raises", [False, True], ids=["nan", "raises"])
+def test_an_env_failing_in_the_baselines_own_episode_keeps_the_model(raises, tmp_path, monkeypatch, capsys):
+    # seed 3's episode fails; with --seed 1 the paired baseline episode from reset seed 3 runs after step 399,
+    # before the training episode from the same seed reaches its 50th step
     monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(DivergingPendulum, "raises", raises)
     args = [*without(SHORT_RUNS["sac_continuous"], "--total-timesteps"), "--total-timesteps", "1000", "--env-id", "DivergingPendulum-v0",
             "--baseline", f"{__name__}:zero_torque", "--regret-estimator", "paired", "--baseline-eval-episodes", "1", "--save-model"]  # fmt: skip
     monkeypatch.setattr(sys, "argv", ["sac_continuous.py", *args])
@@ -350,5 +417,5 @@ def test_a_nan_in_the_baselines_own_episode_is_named_as_the_envs(tmp_path, monke
         runpy.run_path(str(ROOT / "sac_continuous.py"), run_name="__main__")
     assert ended.value.code == 1
     err = capsys.readouterr().err
-    message = "the env returned a non-finite observation or reward in the baseline's episode from reset seed 3"
-    assert f"sac_continuous: error: {message}: training stopped at step 399 of 1,000" in err, err
+    assert_stopped_with_a_whole_model("sac_continuous", err, env_failure(False, raises), 399, tmp_path)
+    assert ("ConnectionError: lost the simulator" in err) == raises, err
