@@ -169,12 +169,18 @@ def resolve_hyperparameters(args: Args) -> Args:
     return args
 
 
+def kind(err: Exception) -> str:
+    """The exception's type as a user would look it up: ValueError, but pybullet.error."""
+    module = type(err).__module__
+    return type(err).__qualname__ if module == "builtins" else f"{module}.{type(err).__qualname__}"
+
+
 def raised(err: Exception) -> str:
     """'raised {Type} ({file}, line {n})' for an exception from a user's code (an env, a baseline), after
     printing its traceback: the one line that ends the run then says where it came from."""
     where = traceback.extract_tb(err.__traceback__)[-1]
     traceback.print_exc()
-    return f"raised {type(err).__name__} ({os.path.basename(where.filename)}, line {where.lineno})"
+    return f"raised {kind(err)} ({os.path.basename(where.filename)}, line {where.lineno})"
 
 
 def non_finite(obs: np.ndarray, reward: float = 0.0) -> bool:
@@ -210,6 +216,12 @@ class CheckedEnv(gym.Wrapper):
         if non_finite(obs, reward):
             raise ValueError(f"{self.env_id} returned a non-finite observation or reward in the episode from {self.episode}")
         return obs, reward, terminated, truncated, info
+
+    def close(self) -> None:
+        try:
+            self.env.close()
+        except Exception as err:  # a simulator gone (what ended the run, maybe) cannot close: the run still ends as it would
+            print(f"warning: {self.env_id} failed to close: {kind(err)}: {err}", file=sys.stderr)
 
 
 def make_env(env_id: str, seed: int, capture_video: bool = False, run_name: str = "") -> gym.Env:

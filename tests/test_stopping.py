@@ -175,15 +175,22 @@ def test_non_finite_finds_nan_and_infinity_in_an_observation_or_a_reward(sac):
 class DivergingPendulum(PendulumEnv):
     """Pendulum-v1 whose episode from reset seed 3 (a run's third, at the default --seed 1) fails at its
     50th step, or at the reset itself: it diverges (NaN) or, with `raises`, raises an error of its own
-    (a simulator that lost its connection)."""
+    (a simulator that lost its connection), after which it cannot close either."""
 
     at_reset = False
     raises = False
+    lost = False
 
     def fail(self, obs: np.ndarray) -> np.ndarray:
         if self.raises:
+            self.lost = True
             raise ConnectionError("lost the simulator")
         return obs * np.nan
+
+    def close(self):
+        super().close()
+        if self.lost:
+            raise ConnectionError("no simulator to close")
 
     def reset(self, *, seed=None, options=None):
         obs, info = super().reset(seed=seed, options=options)
@@ -252,6 +259,8 @@ def test_checked_env_passes_a_working_env_through_and_names_its_failures(script,
         assert str(failed.value) == env_failure(at_reset, raises=True)
         assert isinstance(failed.value.__cause__, ConnectionError)
         assert capsys.readouterr().err.rstrip().endswith("ConnectionError: lost the simulator")  # its traceback, printed
+    checked.close()  # the lost simulator cannot close: one line, not a second traceback
+    assert capsys.readouterr().err == "warning: DivergingPendulum-v0 failed to close: ConnectionError: no simulator to close\n"
 
     def interrupted(self, obs):
         raise KeyboardInterrupt  # not the env's failure: passes through as it is
@@ -259,6 +268,14 @@ def test_checked_env_passes_a_working_env_through_and_names_its_failures(script,
     monkeypatch.setattr(DivergingPendulum, "fail", interrupted)
     with pytest.raises(KeyboardInterrupt):
         checked.reset(seed=3)
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_kind_names_an_exception_as_a_user_would_look_it_up(script):
+    kind = load_script(script).kind
+    assert kind(ZeroDivisionError("float division by zero")) == "ZeroDivisionError"
+    assert kind(np.linalg.LinAlgError()) == "numpy.linalg.LinAlgError"
+    assert kind(gym.error.ResetNeeded()) == "gymnasium.error.ResetNeeded"
 
 
 def zero_torque(obs: np.ndarray) -> np.ndarray:
@@ -285,6 +302,7 @@ def test_a_failing_env_ends_the_training_with_its_model_saved_unharmed(script, a
     total = "1,000" if script.startswith(("sac", "jirl")) else "896"  # PPO and TRPO train whole rollouts of 128
     assert f"{script}: error: {env_failure(at_reset, raises)}: training stopped at step {step} of {total}; saving the model without evaluating it" in err
     assert ("ConnectionError: lost the simulator" in err) == raises, err  # the env's own error is shown where it arose
+    assert ("warning: DivergingPendulum-v0 failed to close: ConnectionError: no simulator to close" in err) == raises, err
     assert "eval:" not in out
     (run_dir,) = (tmp_path / "runs").iterdir()
     checkpoint = torch.load(run_dir / f"{script}.cleanrl_model", weights_only=False)
