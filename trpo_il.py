@@ -190,7 +190,8 @@ def non_finite(obs: np.ndarray, reward: float = 0.0) -> bool:
 class CheckedEnv(gym.Wrapper):
     """The env as the scripts step it: an exception of its own (a simulator that lost its connection,
     hours into a run) and a NaN or infinity it returns both come out as a ValueError naming the env
-    and the episode's reset seed, on which the training loop ends keeping its model."""
+    and the episode's reset seed, on which the training loop ends keeping its model. A failure to
+    close, which follows a simulator's loss, is a warning line instead of a second traceback."""
 
     def __init__(self, env: gym.Env, env_id: str):
         super().__init__(env)
