@@ -28,8 +28,8 @@ def added(new: Callable[[], object], old: Callable[[], object], calls: int, repe
     olds, diffs = [], []
     for i in range(repeats):
         order = (old, new) if i % 2 == 0 else (new, old)  # alternate which side runs first
-        times = {id(f): min(timeit.repeat(f, number=calls, repeat=3)) / calls for f in order}
-        t_old, t_new = times[id(old)], times[id(new)]
+        times = {f: min(timeit.repeat(f, number=calls, repeat=3)) / calls for f in order}
+        t_old, t_new = times[old], times[new]
         olds.append(t_old)
         diffs.append(t_new - t_old)
     return statistics.median(olds), diffs
