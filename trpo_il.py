@@ -181,17 +181,29 @@ def raised(err: Exception) -> str:
     return f"raised {kind(err)} ({os.path.basename(where.filename)}, line {where.lineno})"
 
 
-def non_finite(obs: np.ndarray, reward: float = 0.0) -> bool:
-    """Whether an env returned NaN or infinity (a simulation that diverged); one such number learnt
-    from turns every weight to NaN."""
-    return not (math.isfinite(reward) and np.isfinite(obs).all())
+def flaw(obs: np.ndarray, shape: tuple, reward: float = 0.0) -> str:
+    """What makes an env's observation or reward unusable ('' when nothing): one NaN or infinity learnt
+    from (a simulation that diverged) turns every weight to NaN, and an observation of another shape
+    than its space's, or a reward that is not a number, fits no buffer."""
+    if obs.shape != shape:
+        return f"an observation of shape {obs.shape}, not its space's {shape}"
+    try:
+        if not np.isfinite(obs).all():
+            return "a non-finite observation"
+    except TypeError:  # objects or strings
+        return f"an observation of dtype {obs.dtype}, not numbers"
+    try:
+        return "" if math.isfinite(reward) else "a non-finite reward"
+    except TypeError:  # None, a string, a reward in an array
+        return f"a reward that is not a number ({reward!r:.60})"
 
 
 class CheckedEnv(gym.Wrapper):
     """The env as the scripts step it: an exception of its own (a simulator that lost its connection,
-    hours into a run) and a NaN or infinity it returns both come out as a ValueError naming the env
-    and the episode's reset seed, on which the training loop ends keeping its model. A failure to
-    close, which follows a simulator's loss, is a warning line instead of a second traceback."""
+    hours into a run) and a NaN, an infinity or a malformed observation or reward it returns (`flaw`)
+    all come out as a ValueError naming the env and the episode's reset seed, on which the training
+    loop ends keeping its model. A failure to close, which follows a simulator's loss, is a warning
+    line instead of a second traceback."""
 
     def __init__(self, env: gym.Env, env_id: str):
         super().__init__(env)
@@ -203,8 +215,10 @@ class CheckedEnv(gym.Wrapper):
             obs, info = self.env.reset(seed=seed, options=options)
         except Exception as err:
             raise ValueError(f"{self.env_id} {raised(err)} at {self.episode}: {err}") from err
-        if non_finite(obs):
-            raise ValueError(f"{self.env_id} returned a non-finite observation at {self.episode}")
+        obs = np.asarray(obs)  # a list, which Gymnasium tolerates, as the networks need it
+        what = flaw(obs, self.observation_space.shape)
+        if what:
+            raise ValueError(f"{self.env_id} returned {what} at {self.episode}")
         return obs, info
 
     def step(self, action):
@@ -212,8 +226,10 @@ class CheckedEnv(gym.Wrapper):
             obs, reward, terminated, truncated, info = self.env.step(action)
         except Exception as err:
             raise ValueError(f"{self.env_id} {raised(err)} in the episode from {self.episode}: {err}") from err
-        if non_finite(obs, reward):
-            raise ValueError(f"{self.env_id} returned a non-finite observation or reward in the episode from {self.episode}")
+        obs = np.asarray(obs)
+        what = flaw(obs, self.observation_space.shape, reward)
+        if what:
+            raise ValueError(f"{self.env_id} returned {what} in the episode from {self.episode}")
         return obs, reward, terminated, truncated, info
 
     def close(self) -> None:

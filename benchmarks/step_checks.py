@@ -1,7 +1,7 @@
 """What the per-step checks of a user's env and baseline cost, against the calls they wrap.
 
-- `CheckedEnv.step` (make_env's wrapper: an env's exception or NaN ends the run keeping its model)
-  against what the training loops did before it: the bare step, then `non_finite` on its result.
+- `CheckedEnv.step` (make_env's wrapper: an env's exception, NaN or malformed return ends the run
+  keeping its model) against the bare step: everything the wrapper adds, `flaw`'s checks included.
 - `ask_baseline` (a baseline's exception ends the run keeping its model) against the bare call.
 
 Pendulum-v1 from `jirl_sac_continuous.py` (the four scripts share both definitions, a test checks).
@@ -52,16 +52,12 @@ def main() -> None:
     checked.reset(seed=0)  # Pendulum never terminates, and its time limit only flags truncation
     action = np.array([0.3], dtype=np.float32)
 
-    def step_then_check() -> None:
-        obs, reward, *_ = bare.step(action)
-        jirl.non_finite(obs, reward)
-
     def baseline(obs: np.ndarray) -> np.ndarray:
         return action
 
     obs = np.zeros(3, dtype=np.float32)
     rows = [
-        ("CheckedEnv.step vs step + non_finite", lambda: checked.step(action), step_then_check),
+        ("CheckedEnv.step vs the bare step", lambda: checked.step(action), lambda: bare.step(action)),
         ("ask_baseline vs the bare call", lambda: jirl.ask_baseline(baseline, obs), lambda: baseline(obs)),
     ]
     print("| check | the call it wraps | added per call: median | range |")

@@ -164,28 +164,39 @@ def test_a_signalled_run_saves_its_model_without_evaluating_it(tmp_path):
             process.stdout.close()
 
 
-def test_non_finite_finds_nan_and_infinity_in_an_observation_or_a_reward(sac):
+def test_flaw_names_what_makes_an_observation_or_a_reward_unusable(sac):
     obs = np.array([0.5, -1.0, 3.0], dtype=np.float32)
-    assert not sac.non_finite(obs, -2.5) and not sac.non_finite(obs)
+    for reward in (-2.5, 0, True, np.float32(1.5), np.int64(-3), np.array(2.0)):  # anything float() takes as one number
+        assert sac.flaw(obs, (3,), reward) == ""
+    assert sac.flaw(obs, (3,)) == "" and sac.flaw(obs.astype(np.float64), (3,)) == "" and sac.flaw(np.array([1, 2, 3]), (3,)) == ""
     for bad in (np.nan, np.inf, -np.inf):
-        assert sac.non_finite(np.array([0.5, bad, 3.0]), 1.0)
-        assert sac.non_finite(obs, bad)
+        assert sac.flaw(np.array([0.5, bad, 3.0]), (3,), bad) == "a non-finite observation"  # the observation is named first
+        assert sac.flaw(obs, (3,), bad) == "a non-finite reward"
+    assert sac.flaw(obs[:2], (3,)) == "an observation of shape (2,), not its space's (3,)"
+    assert sac.flaw(obs.reshape(3, 1), (3,), np.nan) == "an observation of shape (3, 1), not its space's (3,)"
+    assert sac.flaw(np.array([0.5, None, 3.0]), (3,)) == "an observation of dtype object, not numbers"
+    assert sac.flaw(np.array(["0.5", "1", "3"]), (3,)) == "an observation of dtype <U3, not numbers"
+    assert sac.flaw(obs, (3,), None) == "a reward that is not a number (None)"
+    assert sac.flaw(obs, (3,), "1.0") == "a reward that is not a number ('1.0')"
+    assert sac.flaw(obs, (3,), np.array([-1.25])) == "a reward that is not a number (array([-1.25]))"
+    assert sac.flaw(obs, (3,), list(range(100))) == f"a reward that is not a number ({str(list(range(100)))[:60]})"  # at most 60 characters of it
 
 
 class DivergingPendulum(PendulumEnv):
     """Pendulum-v1 whose episode from reset seed 3 (a run's third, at the default --seed 1) fails at its
-    50th step, or at the reset itself: it diverges (NaN) or, with `raises`, raises an error of its own
-    (a simulator that lost its connection), after which it cannot close either."""
+    50th step, or at the reset itself, as `how` says: it diverges ("nan"), raises an error of its own
+    ("raises": a simulator that lost its connection, after which it cannot close either), or returns an
+    observation missing a number ("shape": a robot's bridge that dropped a sensor's field)."""
 
     at_reset = False
-    raises = False
+    how = "nan"
     lost = False
 
     def fail(self, obs: np.ndarray) -> np.ndarray:
-        if self.raises:
+        if self.how == "raises":
             self.lost = True
             raise ConnectionError("lost the simulator")
-        return obs * np.nan
+        return obs[:2] if self.how == "shape" else obs * np.nan
 
     def close(self):
         super().close()
@@ -216,13 +227,13 @@ def line_of(code: str) -> int:
 ENV_RAISING_LINE = line_of('raise ConnectionError("lost the simulator")')
 
 
-def env_failure(at_reset: bool, raises: bool) -> str:
+def env_failure(at_reset: bool, how: str) -> str:
     """The line DivergingPendulum's failure in the episode from reset seed 3 ends a run with."""
-    if raises:
-        where = "at reset seed 3" if at_reset else "in the episode from reset seed 3"
+    where = "at reset seed 3" if at_reset else "in the episode from reset seed 3"
+    if how == "raises":
         return f"DivergingPendulum-v0 raised ConnectionError (test_stopping.py, line {ENV_RAISING_LINE}) {where}: lost the simulator"
-    what = "a non-finite observation at reset seed 3" if at_reset else "a non-finite observation or reward in the episode from reset seed 3"
-    return f"DivergingPendulum-v0 returned {what}"
+    what = "an observation of shape (2,), not its space's (3,)" if how == "shape" else "a non-finite observation"
+    return f"DivergingPendulum-v0 returned {what} {where}"
 
 
 gym.register("DivergingPendulum-v0", entry_point=DivergingPendulum, max_episode_steps=200)
@@ -240,15 +251,24 @@ def test_checked_env_passes_a_working_env_through_and_names_its_failures(script,
             action = np.array([np.sin(t)], dtype=np.float32)
             for got, want in zip(checked.step(action), bare.step(action)):
                 np.testing.assert_equal(got, want)
-    with pytest.raises(ValueError, match=re.escape(env_failure(at_reset=False, raises=False)) + "$"):
+    with pytest.raises(ValueError, match=re.escape(env_failure(at_reset=False, how="nan")) + "$"):
         checked.step(np.zeros(1))
     checked.reset()  # unseeded: the message says so
     checked.unwrapped.diverging = True
     checked.unwrapped.t = 49
-    with pytest.raises(ValueError, match="^DivergingPendulum-v0 returned a non-finite observation or reward in the episode from an unseeded reset$"):
+    with pytest.raises(ValueError, match="^DivergingPendulum-v0 returned a non-finite observation in the episode from an unseeded reset$"):
         checked.step(np.zeros(1))
+    monkeypatch.setattr(DivergingPendulum, "how", "shape")
+    for at_reset in (False, True):
+        monkeypatch.setattr(DivergingPendulum, "at_reset", at_reset)
+        with pytest.raises(ValueError) as failed:
+            checked.reset(seed=3)
+            for _ in range(50):
+                checked.step(np.zeros(1))
+        assert str(failed.value) == env_failure(at_reset, "shape")
+    monkeypatch.setattr(DivergingPendulum, "at_reset", False)
 
-    monkeypatch.setattr(DivergingPendulum, "raises", True)
+    monkeypatch.setattr(DivergingPendulum, "how", "raises")
     capsys.readouterr()
     for at_reset in (False, True):
         monkeypatch.setattr(DivergingPendulum, "at_reset", at_reset)
@@ -256,7 +276,7 @@ def test_checked_env_passes_a_working_env_through_and_names_its_failures(script,
             checked.reset(seed=3)
             for _ in range(50):
                 checked.step(np.zeros(1))
-        assert str(failed.value) == env_failure(at_reset, raises=True)
+        assert str(failed.value) == env_failure(at_reset, "raises")
         assert isinstance(failed.value.__cause__, ConnectionError)
         assert capsys.readouterr().err.rstrip().endswith("ConnectionError: lost the simulator")  # its traceback, printed
     checked.close()  # the lost simulator cannot close: one line, not a second traceback
@@ -268,6 +288,31 @@ def test_checked_env_passes_a_working_env_through_and_names_its_failures(script,
     monkeypatch.setattr(DivergingPendulum, "fail", interrupted)
     with pytest.raises(KeyboardInterrupt):
         checked.reset(seed=3)
+
+
+class ListPendulum(PendulumEnv):
+    """Pendulum-v1 returning its observations as lists, which Gymnasium tolerates with a warning."""
+
+    def reset(self, *, seed=None, options=None):
+        obs, info = super().reset(seed=seed, options=options)
+        return list(obs), info
+
+    def step(self, action):
+        obs, *rest = super().step(action)
+        return (list(obs), *rest)
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_checked_env_gives_an_observation_returned_as_a_list_as_an_array(script):
+    checked, bare = load_script(script).CheckedEnv(ListPendulum(), "ListPendulum"), PendulumEnv()
+    (obs, _), (want, _) = checked.reset(seed=5), bare.reset(seed=5)
+    assert isinstance(obs, np.ndarray)
+    np.testing.assert_array_equal(obs, want)
+    for t in range(20):
+        action = np.array([np.cos(t)], dtype=np.float32)
+        (obs, reward, *_), (want, want_reward, *_) = checked.step(action), bare.step(action)
+        assert isinstance(obs, np.ndarray) and reward == want_reward
+        np.testing.assert_array_equal(obs, want)
 
 
 @pytest.mark.parametrize("script", SCRIPTS)
@@ -283,13 +328,14 @@ def zero_torque(obs: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.filterwarnings("ignore:.*(NaN value|not within the observation space).*")  # Gymnasium's env checker says so too
-@pytest.mark.parametrize("raises", [False, True], ids=["nan", "raises"])
+@pytest.mark.parametrize("how", ["nan", "raises", "shape"])
 @pytest.mark.parametrize("at_reset", [False, True], ids=["step", "reset"])
 @pytest.mark.parametrize("script", SCRIPTS)
-def test_a_failing_env_ends_the_training_with_its_model_saved_unharmed(script, at_reset, raises, tmp_path, monkeypatch, capsys):
+def test_a_failing_env_ends_the_training_with_its_model_saved_unharmed(script, at_reset, how, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(DivergingPendulum, "at_reset", at_reset)
-    monkeypatch.setattr(DivergingPendulum, "raises", raises)
+    monkeypatch.setattr(DivergingPendulum, "how", how)
+    raises = how == "raises"
     args = [*without(SHORT_RUNS[script], "--total-timesteps"), "--total-timesteps", "1000", "--env-id", "DivergingPendulum-v0",
             "--baseline", f"{__name__}:zero_torque", "--regret-estimator", "off", "--save-model"]  # fmt: skip
     monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
@@ -300,7 +346,7 @@ def test_a_failing_env_ends_the_training_with_its_model_saved_unharmed(script, a
     # the reset after the second episode's last step, or the third episode's 50th step (SAC counts steps from 0, PPO from 1)
     step = (399 if at_reset else 449) + script.endswith("_il")
     total = "1,000" if script.startswith(("sac", "jirl")) else "896"  # PPO and TRPO train whole rollouts of 128
-    assert f"{script}: error: {env_failure(at_reset, raises)}: training stopped at step {step} of {total}; saving the model without evaluating it" in err
+    assert f"{script}: error: {env_failure(at_reset, how)}: training stopped at step {step} of {total}; saving the model without evaluating it" in err
     assert ("ConnectionError: lost the simulator" in err) == raises, err  # the env's own error is shown where it arose
     assert ("warning: DivergingPendulum-v0 failed to close: ConnectionError: no simulator to close" in err) == raises, err
     assert "eval:" not in out
@@ -316,17 +362,17 @@ def test_a_failing_env_ends_the_training_with_its_model_saved_unharmed(script, a
 
 
 @pytest.mark.filterwarnings("ignore:.*(NaN value|not within the observation space).*")
-@pytest.mark.parametrize("raises", [False, True], ids=["nan", "raises"])
+@pytest.mark.parametrize("how", ["nan", "raises", "shape"])
 @pytest.mark.parametrize("script", SCRIPTS)
-def test_an_env_failing_at_the_first_reset_is_a_one_line_error(script, raises, tmp_path, monkeypatch, writers_closed):
+def test_an_env_failing_at_the_first_reset_is_a_one_line_error(script, how, tmp_path, monkeypatch, writers_closed):
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(DivergingPendulum, "at_reset", True)
-    monkeypatch.setattr(DivergingPendulum, "raises", raises)
+    monkeypatch.setattr(DivergingPendulum, "how", how)
     args = [*SHORT_RUNS[script], "--env-id", "DivergingPendulum-v0", "--seed", "3", "--baseline", f"{__name__}:zero_torque", "--regret-estimator", "off"]
     monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
     with pytest.raises(SystemExit) as ended:
         runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
-    assert ended.value.code == f"{script}: error: {env_failure(at_reset=True, raises=raises)}"
+    assert ended.value.code == f"{script}: error: {env_failure(at_reset=True, how=how)}"
 
 
 class BaselineFailingAtCall:
@@ -430,12 +476,12 @@ def test_ask_baseline_names_what_a_baseline_raises_and_where(script, capsys):
 
 
 @pytest.mark.filterwarnings("ignore:.*(NaN value|not within the observation space).*")
-@pytest.mark.parametrize("raises", [False, True], ids=["nan", "raises"])
-def test_an_env_failing_in_the_baselines_own_episode_keeps_the_model(raises, tmp_path, monkeypatch, capsys):
+@pytest.mark.parametrize("how", ["nan", "raises"])
+def test_an_env_failing_in_the_baselines_own_episode_keeps_the_model(how, tmp_path, monkeypatch, capsys):
     # seed 3's episode fails; with --seed 1 the paired baseline episode from reset seed 3 runs after step 399,
     # before the training episode from the same seed reaches its 50th step
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(DivergingPendulum, "raises", raises)
+    monkeypatch.setattr(DivergingPendulum, "how", how)
     args = [*without(SHORT_RUNS["sac_continuous"], "--total-timesteps"), "--total-timesteps", "1000", "--env-id", "DivergingPendulum-v0",
             "--baseline", f"{__name__}:zero_torque", "--regret-estimator", "paired", "--baseline-eval-episodes", "1", "--save-model"]  # fmt: skip
     monkeypatch.setattr(sys, "argv", ["sac_continuous.py", *args])
@@ -443,5 +489,5 @@ def test_an_env_failing_in_the_baselines_own_episode_keeps_the_model(raises, tmp
         runpy.run_path(str(ROOT / "sac_continuous.py"), run_name="__main__")
     assert ended.value.code == 1
     err = capsys.readouterr().err
-    assert_stopped_with_a_whole_model("sac_continuous", err, env_failure(False, raises), 399, tmp_path)
-    assert ("ConnectionError: lost the simulator" in err) == raises, err
+    assert_stopped_with_a_whole_model("sac_continuous", err, env_failure(False, how), 399, tmp_path)
+    assert ("ConnectionError: lost the simulator" in err) == (how == "raises"), err
