@@ -210,6 +210,7 @@ class CheckedEnv(gym.Wrapper):
     def __init__(self, env: gym.Env, env_id: str):
         super().__init__(env)
         self.env_id, self.episode = env_id, "an unseeded reset"
+        self.shape = env.observation_space.shape  # looked up once: through a stack of wrappers it takes half a microsecond
 
     def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
         self.episode = "an unseeded reset" if seed is None else f"reset seed {seed}"
@@ -218,7 +219,7 @@ class CheckedEnv(gym.Wrapper):
         except Exception as err:
             raise ValueError(f"{self.env_id} {raised(err)} at {self.episode}: {err}") from err
         obs = np.asarray(obs)  # a list, which Gymnasium tolerates, as the networks need it
-        what = flaw(obs, self.observation_space.shape)
+        what = flaw(obs, self.shape)
         if what:
             raise ValueError(f"{self.env_id} returned {what} at {self.episode}")
         return obs, info
@@ -229,7 +230,7 @@ class CheckedEnv(gym.Wrapper):
         except Exception as err:
             raise ValueError(f"{self.env_id} {raised(err)} in the episode from {self.episode}: {err}") from err
         obs = np.asarray(obs)
-        what = flaw(obs, self.observation_space.shape, reward)
+        what = flaw(obs, self.shape, reward)
         if what:
             raise ValueError(f"{self.env_id} returned {what} in the episode from {self.episode}")
         return obs, reward, terminated, truncated, info

@@ -2,9 +2,11 @@
 
 - `CheckedEnv.step` (make_env's wrapper: an env's exception, NaN or malformed return ends the run
   keeping its model) against the bare step: everything the wrapper adds, `flaw`'s checks included.
+  Once on an env whose step costs next to nothing (a constant return), which isolates the wrapper's
+  own cost from a simulator's noise, and once on Pendulum-v1 (as `gym.make` builds it) for scale.
 - `ask_baseline` (a baseline's exception ends the run keeping its model) against the bare call.
 
-Pendulum-v1 from `jirl_sac_continuous.py` (the four scripts share both definitions, a test checks).
+The wrappers come from `jirl_sac_continuous.py` (the four scripts share both definitions, a test checks).
 Each repeat times both sides back to back (which first alternates), the best of 3 runs of `--calls` calls each; prints the
 median and range over the repeats of the time added per call.
 
@@ -47,17 +49,35 @@ def main() -> None:
 
     import jirl_sac_continuous as jirl
 
-    bare, checked = gym.make("Pendulum-v1"), jirl.CheckedEnv(gym.make("Pendulum-v1"), "Pendulum-v1")
-    bare.reset(seed=0)
-    checked.reset(seed=0)  # Pendulum never terminates, and its time limit only flags truncation
+    class ConstantEnv(gym.Env):
+        """Pendulum's spaces, and a step that returns the same finite observation and reward."""
+
+        observation_space = gym.spaces.Box(-8.0, 8.0, (3,), np.float32)
+        action_space = gym.spaces.Box(-2.0, 2.0, (1,), np.float32)
+
+        def __init__(self) -> None:
+            self.obs = np.array([1.0, 0.0, 0.5], dtype=np.float32)
+
+        def reset(self, *, seed=None, options=None):
+            return self.obs, {}
+
+        def step(self, action):
+            return self.obs, -1.5, False, False, {}
+
     action = np.array([0.3], dtype=np.float32)
+    sides = {}
+    for name, make in (("a constant env", ConstantEnv), ("Pendulum-v1", lambda: gym.make("Pendulum-v1"))):
+        bare, checked = make(), jirl.CheckedEnv(make(), name)
+        bare.reset(seed=0)
+        checked.reset(seed=0)  # neither ever terminates; Pendulum's time limit only flags truncation
+        sides[name] = (lambda checked=checked: checked.step(action), lambda bare=bare: bare.step(action))
 
     def baseline(obs: np.ndarray) -> np.ndarray:
         return action
 
     obs = np.zeros(3, dtype=np.float32)
     rows = [
-        ("CheckedEnv.step vs the bare step", lambda: checked.step(action), lambda: bare.step(action)),
+        *[(f"CheckedEnv.step vs the bare step, {name}", new, old) for name, (new, old) in sides.items()],
         ("ask_baseline vs the bare call", lambda: jirl.ask_baseline(baseline, obs), lambda: baseline(obs)),
     ]
     print("| check | the call it wraps | added per call: median | range |")
