@@ -183,10 +183,10 @@ def raised(err: Exception) -> str:
     return f"raised {kind(err)} ({os.path.basename(where.filename)}, line {where.lineno})"
 
 
-def flaw(obs: np.ndarray, shape: tuple, reward: float = 0.0) -> str:
-    """What makes an env's observation or reward unusable ('' when nothing): one NaN or infinity learnt
-    from (a simulation that diverged) turns every weight to NaN, and an observation of another shape
-    than its space's, or a reward that is not a number, fits no buffer."""
+def flaw(obs: np.ndarray, shape: tuple, reward: float = 0.0, terminated: bool = False, truncated: bool = False) -> str:
+    """What makes what an env returned unusable ('' when nothing): one NaN or infinity learnt from (a
+    simulation that diverged) turns every weight to NaN, and an observation of another shape than its
+    space's, a reward that is not a number or a flag that is neither True nor False fits no buffer."""
     if obs.shape != shape:
         return f"an observation of shape {obs.shape}, not its space's {shape}"
     try:
@@ -195,16 +195,23 @@ def flaw(obs: np.ndarray, shape: tuple, reward: float = 0.0) -> str:
     except TypeError:  # objects or strings
         return f"an observation of dtype {obs.dtype}, not numbers"
     try:
-        return "" if math.isfinite(reward) else "a non-finite reward"
+        if not math.isfinite(reward):
+            return "a non-finite reward"
     except TypeError:  # None, a string, a reward in an array
         return f"a reward that is not a number ({reward!r:.60})"
+    try:
+        if terminated in (True, False) and truncated in (True, False):  # also numpy's bools, and 0 and 1
+            return ""
+    except ValueError:  # several flags in an array
+        pass
+    return f"flags terminated={terminated!r:.30}, truncated={truncated!r:.30}, where each must be True or False"
 
 
 class CheckedEnv(gym.Wrapper):
     """The env as the scripts step it: an exception of its own (a simulator that lost its connection,
-    hours into a run) and a NaN, an infinity or a malformed observation or reward it returns (`flaw`)
-    all come out as a ValueError naming the env and the episode's reset seed, on which the training
-    loop ends keeping its model. A failure to close, which follows a simulator's loss, is a warning
+    hours into a run) and a NaN, an infinity or a malformed observation, reward or flag it returns
+    (`flaw`) all come out as a ValueError naming the env and the episode's reset seed, on which the
+    training loop ends keeping its model. A failure to close, which follows a simulator's loss, is a warning
     line instead of a second traceback."""
 
     def __init__(self, env: gym.Env, env_id: str):
@@ -230,7 +237,7 @@ class CheckedEnv(gym.Wrapper):
         except Exception as err:
             raise ValueError(f"{self.env_id} {raised(err)} in the episode from {self.episode}: {err}") from err
         obs = np.asarray(obs)
-        what = flaw(obs, self.shape, reward)
+        what = flaw(obs, self.shape, reward, terminated, truncated)
         if what:
             raise ValueError(f"{self.env_id} returned {what} in the episode from {self.episode}")
         return obs, reward, terminated, truncated, info

@@ -180,13 +180,19 @@ def test_flaw_names_what_makes_an_observation_or_a_reward_unusable(sac):
     assert sac.flaw(obs, (3,), "1.0") == "a reward that is not a number ('1.0')"
     assert sac.flaw(obs, (3,), np.array([-1.25])) == "a reward that is not a number (array([-1.25]))"
     assert sac.flaw(obs, (3,), list(range(100))) == f"a reward that is not a number ({str(list(range(100)))[:60]})"  # at most 60 characters of it
+    for flags in ((True, False), (np.True_, np.False_), (0, 1), (np.array([True]), False)):  # what worked before, stored as 1 and 0
+        assert sac.flaw(obs, (3,), 1.0, *flags) == ""
+    for flags, said in (((None, False), "None, truncated=False"), ((False, "False"), "False, truncated='False'"),
+                        ((np.array([False, True]), False), "array([False,  True]), truncated=False"), ((2, False), "2, truncated=False")):  # fmt: skip
+        assert sac.flaw(obs, (3,), 1.0, *flags) == f"flags terminated={said}, where each must be True or False"
 
 
 class DivergingPendulum(PendulumEnv):
     """Pendulum-v1 whose episode from reset seed 3 (a run's third, at the default --seed 1) fails at its
     50th step, or at the reset itself, as `how` says: it diverges ("nan"), raises an error of its own
     ("raises": a simulator that lost its connection, after which it cannot close either), or returns an
-    observation missing a number ("shape": a robot's bridge that dropped a sensor's field)."""
+    observation missing a number ("shape": a robot's bridge that dropped a sensor's field), or, at the
+    step only, a termination flag of None ("flag": a field missing from the bridge's message)."""
 
     at_reset = False
     how = "nan"
@@ -212,6 +218,8 @@ class DivergingPendulum(PendulumEnv):
         obs, reward, terminated, truncated, info = super().step(action)
         self.t += 1
         if self.diverging and self.t == 50:
+            if self.how == "flag":
+                return obs, reward, None, truncated, info
             return self.fail(obs), float("nan"), terminated, truncated, info
         return obs, reward, terminated, truncated, info
 
@@ -232,7 +240,8 @@ def env_failure(at_reset: bool, how: str) -> str:
     where = "at reset seed 3" if at_reset else "in the episode from reset seed 3"
     if how == "raises":
         return f"DivergingPendulum-v0 raised ConnectionError (test_stopping.py, line {ENV_RAISING_LINE}) {where}: lost the simulator"
-    what = "an observation of shape (2,), not its space's (3,)" if how == "shape" else "a non-finite observation"
+    what = {"shape": "an observation of shape (2,), not its space's (3,)", "nan": "a non-finite observation",
+            "flag": "flags terminated=None, truncated=False, where each must be True or False"}[how]  # fmt: skip
     return f"DivergingPendulum-v0 returned {what} {where}"
 
 
@@ -324,8 +333,8 @@ def zero_torque(obs: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.filterwarnings("ignore:.*(NaN value|not within the observation space).*")  # Gymnasium's env checker says so too
-@pytest.mark.parametrize("how", ["nan", "raises", "shape"])
-@pytest.mark.parametrize("at_reset", [False, True], ids=["step", "reset"])
+@pytest.mark.parametrize("at_reset, how", [(False, "nan"), (False, "raises"), (False, "shape"), (False, "flag"), (True, "nan"), (True, "raises"), (True, "shape")],
+                         ids=["step-nan", "step-raises", "step-shape", "step-flag", "reset-nan", "reset-raises", "reset-shape"])  # fmt: skip
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_a_failing_env_ends_the_training_with_its_model_saved_unharmed(script, at_reset, how, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
