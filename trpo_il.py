@@ -182,7 +182,7 @@ def raised(err: Exception) -> str:
 
 
 def flaw(obs: np.ndarray, shape: tuple, reward: float = 0.0, terminated: bool = False, truncated: bool = False) -> str:
-    """What makes what an env returned unusable ('' when nothing): one NaN or infinity learnt from (a
+    """What makes an env's return unusable ('' when nothing): one NaN or infinity learnt from (a
     simulation that diverged) turns every weight to NaN, and an observation of another shape than its
     space's, a reward that is not a number or a flag that is neither True nor False fits no buffer."""
     if obs.shape != shape:
@@ -209,8 +209,8 @@ class CheckedEnv(gym.Wrapper):
     """The env as the scripts step it: an exception of its own (a simulator that lost its connection,
     hours into a run) and a NaN, an infinity or a malformed observation, reward or flag it returns
     (`flaw`) all come out as a ValueError naming the env and the episode's reset seed, on which the
-    training loop ends keeping its model. A failure to close, which follows a simulator's loss, is a warning
-    line instead of a second traceback."""
+    training loop ends keeping its model. A failure to close, which follows a simulator's loss, is a
+    warning line instead of a second traceback."""
 
     def __init__(self, env: gym.Env, env_id: str):
         super().__init__(env)
