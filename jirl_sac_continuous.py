@@ -850,11 +850,46 @@ def claim_run_dir(run_name: str) -> str:
             pass
 
 
+class CheckedWriter(SummaryWriter):
+    """TensorBoard's SummaryWriter, except that a write that fails (a full disk, a file-size limit) is not
+    raised from whichever call comes next, mid-loop, after a traceback from TensorBoard's writing thread:
+    it is said once, in `failure`, and later writes are dropped. The loop then ends as for a failing env,
+    keeping the model where the disk has room for it."""
+
+    def __init__(self, log_dir: str) -> None:
+        self.failure = ""  # why the logs stopped; "" while they are written
+        self.other_threads_hook = threading.excepthook
+        threading.excepthook = self.thread_failed  # before super() starts the writing thread
+        self.checked(super().__init__, log_dir)  # which writes the event file's first record
+
+    def add_scalar(self, *args, **kwargs) -> None:
+        self.checked(super().add_scalar, *args, **kwargs)
+
+    def add_text(self, *args, **kwargs) -> None:
+        self.checked(super().add_text, *args, **kwargs)
+
+    def close(self) -> None:
+        self.checked(super().close)
+
+    def checked(self, write: Callable, *args, **kwargs) -> None:
+        if self.failure:
+            return
+        try:
+            write(*args, **kwargs)
+        except OSError as err:  # the thread's error, raised at the first call after it failed
+            self.failure = f"cannot write the logs to {self.log_dir}: {err.strerror or err}"
+
+    def thread_failed(self, exc: threading.ExceptHookArgs) -> None:
+        """A writing thread's OSError is said by `failure`; any other thread's error as before."""
+        if not (isinstance(exc.exc_value, OSError) and type(exc.thread).__module__.startswith("tensorboard.")):
+            self.other_threads_hook(exc)
+
+
 class StopRequest:
     """Why the training ends before its last step: Ctrl-C (SIGINT) or SIGTERM (`kill`, `timeout`, a
     cluster's time limit), caught so that the run ends at the training loop's next turn instead of at
-    once; or an env or a baseline that failed. Either way --save-model still saves what was learnt.
-    The first signal puts the previous handlers back, so a second one acts as it always did."""
+    once; or an env, a baseline or the logs that failed. Either way --save-model still saves what was
+    learnt. The first signal puts the previous handlers back, so a second one acts as it always did."""
 
     def __init__(self) -> None:
         self.reason: Optional[str] = None  # said when the training stops
@@ -911,7 +946,7 @@ if __name__ == "__main__":
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
     low, high = env.action_space.low, env.action_space.high
 
-    writer = SummaryWriter(f"runs/{run_name}")
+    writer = CheckedWriter(f"runs/{run_name}")
     writer.add_text(
         "hyperparameters",
         "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])),
@@ -975,8 +1010,10 @@ if __name__ == "__main__":
     if hasattr(baseline, "reset"):
         baseline.reset()
 
-    stop = StopRequest()  # from here Ctrl-C, SIGTERM, or an env or a baseline that fails ends the training, keeping what was learnt
+    stop = StopRequest()  # from here Ctrl-C, SIGTERM, or an env, a baseline or the logs failing ends the training, keeping what was learnt
     for global_step in range(args.total_timesteps):
+        if writer.failure and stop.reason is None:  # the logs failed: end as for a failing env
+            stop.end(f"{args.exp_name}: error: {writer.failure}", 1)
         if stop.reason is not None:
             break
         # ALGO LOGIC: put action logic here
@@ -1128,3 +1165,5 @@ if __name__ == "__main__":
     writer.close()
     if stop.reason is not None:
         sys.exit(stop.status)
+    if writer.failure:  # in the last step's or the evaluation's logs; the model is saved and evaluated
+        raise SystemExit(f"{args.exp_name}: error: {writer.failure}")

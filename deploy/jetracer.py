@@ -238,8 +238,6 @@ class CarSession:
     """The link, the camera (and the simulator behind both in sim-in-the-loop), safety, timing and logs."""
 
     def __init__(self, args: Common, mode: str) -> None:
-        from torch.utils.tensorboard import SummaryWriter
-
         self.args, self.mode, self.period = args, mode, 1.0 / args.control_hz
         self.stop_requested = False
         self.estop_unsent = False  # set by the signal handler when the link is down; close() says it
@@ -280,10 +278,13 @@ class CarSession:
             accepts = f"; it accepts {info.fields[3]}-{info.fields[4]} ms" if info is not None else "; it did not answer HELLO either"
             raise SystemExit(f"{mode}: error: the controller on {args.port} did not arm with --watchdog-ms {args.watchdog_ms}{accepts}")
         try:  # no log of a session that never armed
-            self.writer = SummaryWriter(claim_log_dir(args.log_dir, f"{mode}__{int(time.time())}"))
+            self.writer = jirl.CheckedWriter(claim_log_dir(args.log_dir, f"{mode}__{int(time.time())}"))
         except OSError as err:  # made unwritable since it was checked
             self.close()
             raise SystemExit(f"{mode}: error: cannot log to --log-dir {args.log_dir}: {err}") from None
+        if self.writer.failure:  # a full disk
+            self.close()
+            raise SystemExit(f"{mode}: error: {self.writer.failure}")
 
     def _on_signal(self, *_) -> None:
         self.stop_requested = True
@@ -304,6 +305,10 @@ class CarSession:
         """Read the gamepad, advance the simulator (if any) one period and read the camera; None if the
         frame is stale or the run is ending."""
         self.check_gamepad()  # every period, fresh frame or not
+        if self.writer.failure and not self.stop_requested:  # a full disk: stop as for a dead camera (train saves its state)
+            self.link.stop()
+            self.stop_requested = True
+            print(f"{self.mode}: error: {self.writer.failure}; stopping", file=sys.stderr)
         if self.stop_requested:
             return None
         if self.world is not None:

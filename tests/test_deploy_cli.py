@@ -1,5 +1,7 @@
 """deploy/jetracer.py: safety, and the run, baseline and train modes headless against the simulated car."""
 
+import errno
+import os
 import re
 import signal
 import subprocess
@@ -134,8 +136,6 @@ def test_background_learner_keeps_the_gradient_step_ratio(tmp_path):
 
 def fifo_gamepad(tmp_path, monkeypatch) -> str:
     """A FIFO that deploy.io takes for a joystick device: the tests write its events."""
-    import os
-
     from deploy import io
 
     path = str(tmp_path / "js0")
@@ -153,7 +153,6 @@ def tap(button: int = 0) -> bytes:
 
 
 def test_gamepad_events_estop_and_takeover(tmp_path, monkeypatch):
-    import os
     import struct
 
     path = fifo_gamepad(tmp_path, monkeypatch)
@@ -174,8 +173,6 @@ def test_gamepad_events_estop_and_takeover(tmp_path, monkeypatch):
 
 
 def test_a_device_that_is_no_joystick_is_refused_and_closed(tmp_path):
-    import os
-
     from deploy import io
 
     fifo = str(tmp_path / "fifo")
@@ -224,8 +221,6 @@ def test_joystick_shape_asks_the_driver_for_its_axes_and_buttons(monkeypatch):
 
 
 def test_a_tap_of_the_e_stop_between_two_reads_still_counts(tmp_path, monkeypatch):
-    import os
-
     from deploy.io import Gamepad
 
     path = fifo_gamepad(tmp_path, monkeypatch)
@@ -241,8 +236,6 @@ def test_a_tap_of_the_e_stop_between_two_reads_still_counts(tmp_path, monkeypatc
 
 
 def test_an_e_stop_tapped_during_a_training_pause_ends_the_run_there(tmp_path, monkeypatch):
-    import os
-
     path = fifo_gamepad(tmp_path, monkeypatch)
     writer_fd = os.open(path, os.O_RDWR | os.O_NONBLOCK)
     real_update, estops = jetracer.jirl.SoftActorCritic.update, []
@@ -265,9 +258,6 @@ def test_an_e_stop_tapped_during_a_training_pause_ends_the_run_there(tmp_path, m
 
 
 def test_a_lost_gamepad_raises_gamepad_lost_and_closes_quietly(tmp_path, monkeypatch):
-    import errno
-    import os
-
     from deploy import io
 
     path = fifo_gamepad(tmp_path, monkeypatch)
@@ -363,8 +353,6 @@ def test_training_ends_and_keeps_its_state_when_the_watchdog_trips(tmp_path, mon
 
 
 def test_ctrl_c_while_the_link_is_down_ends_the_training_cleanly_and_keeps_its_state(tmp_path, monkeypatch, capsys):
-    import os
-
     def link_down_then_ctrl_c(session):
         def unwritable(*_):
             raise OSError("not connected")
@@ -452,8 +440,6 @@ def test_a_camera_that_fails_ends_the_run_at_once_saying_why(mode, tmp_path, mon
 
 
 def test_the_e_stop_is_read_while_the_frames_are_stale(tmp_path, monkeypatch, capsys):
-    import os
-
     path = fifo_gamepad(tmp_path, monkeypatch)
     writer_fd = os.open(path, os.O_RDWR | os.O_NONBLOCK)
     reads = stale_camera(monkeypatch, lambda n: n > 30)  # frozen after 30 periods: the car waits, stopped
@@ -540,6 +526,32 @@ def test_a_checkpoint_that_cannot_be_written_mid_run_stops_the_car(tmp_path, mon
     assert controllers[0].throttle == 0.0 and controllers[0].estop_latched  # the session was closed: STOP, ESTOP
     assert torch.load(state, weights_only=True)["counters"]["step"] == 40  # the last state that fitted, whole
     assert not list(tmp_path.glob("*.tmp"))
+
+
+@pytest.mark.parametrize("mode", ["baseline", "train"])
+def test_logs_that_cannot_be_written_stop_the_car_and_training_keeps_its_state(mode, tmp_path, monkeypatch, capsys):
+    from torch.utils.tensorboard import SummaryWriter
+
+    real_add_scalar = SummaryWriter.add_scalar
+
+    def add_scalar(self, tag, value, step=None, *args, **kwargs):  # the disk is full from the step-200 logs on
+        if step >= 200:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real_add_scalar(self, tag, value, step, *args, **kwargs)
+
+    monkeypatch.setattr(SummaryWriter, "add_scalar", add_scalar)
+    controllers = record_closed_controllers(monkeypatch)
+    state = tmp_path / "train.pt"
+    if mode == "baseline":  # the car stops at the period after: 201 driven
+        assert len(jetracer.baseline(jetracer.Baseline(steps=1000, log_dir=str(tmp_path)))) == 201
+    else:
+        jetracer.main(["train", "--total-steps", "1000", "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST])
+        assert torch.load(state, weights_only=True)["counters"]["step"] == 201  # saved on the way out
+    (log_dir,) = tmp_path.glob(f"{mode}__*")
+    err = capsys.readouterr().err
+    assert f"{mode}: error: cannot write the logs to {log_dir}: No space left on device; stopping" in err
+    assert "Traceback" not in err and "Exception in thread" not in err, err
+    assert controllers[0].throttle == 0.0 and controllers[0].estop_latched  # closed: STOP, ESTOP
 
 
 def started_session(command: list, tmp_path, hangup=signal.SIG_DFL) -> subprocess.Popen:

@@ -6,9 +6,12 @@ process exits with the status a shell gives a signalled process, or 1. A long ru
 `timeout`, by a cluster's time limit, by a simulation that diverged or broke, or by a baseline that
 broke keeps its model."""
 
+import errno
 import os
 import re
+import resource
 import runpy
+import shutil
 import signal
 import subprocess
 import sys
@@ -497,3 +500,124 @@ def test_an_env_failing_in_the_baselines_own_episode_keeps_the_model(how, tmp_pa
     err = capsys.readouterr().err
     assert_stopped_with_a_whole_model("sac_continuous", err, env_failure(False, how), 399, tmp_path)
     assert ("ConnectionError: lost the simulator" in err) == (how == "raises"), err
+
+
+class FullDiskWriter(tensorboard.SummaryWriter):
+    """TensorBoard's writer on a disk that fills at the `at`-th write of `tag`: from then on every write
+    raises ENOSPC, as the real one's do once its writing thread has failed."""
+
+    tag, at = "charts/episodic_return", 2
+    made: list = []
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.made.append(self)
+        self.writes = 0
+
+    def add_scalar(self, tag, *args, **kwargs):
+        self.writes += tag == self.tag
+        if self.writes >= self.at:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        super().add_scalar(tag, *args, **kwargs)
+
+
+@pytest.fixture
+def full_disk(monkeypatch):
+    monkeypatch.setattr(tensorboard, "SummaryWriter", FullDiskWriter)
+    monkeypatch.setattr(FullDiskWriter, "made", [])
+    yield
+    for writer in FullDiskWriter.made:  # the real writer under the failing one, which the run no longer closes
+        tensorboard.SummaryWriter.close(writer)
+
+
+# The step the training stops at when the second episode's return cannot be logged: SAC and JIRL log it at step 399
+# and stop at the next; PPO+IL and TRPO+IL log it at step 400, in their fourth rollout, which they finish and learn from.
+LOGS_FAIL_AT = {"sac_continuous": 400, "jirl_sac_continuous": 400, "ppo_il": 512, "trpo_il": 512}
+
+
+@pytest.mark.parametrize("tag", ["charts/episodic_return", "eval/episodic_return"])
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_logs_that_cannot_be_written_end_the_run_with_its_model_saved(script, tag, tmp_path, monkeypatch, capsys, full_disk):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(FullDiskWriter, "tag", tag)
+    monkeypatch.setattr(FullDiskWriter, "at", 2 if tag.startswith("charts") else 1)
+    args = [*without(SHORT_RUNS[script], "--total-timesteps"), "--total-timesteps", "1000", "--eval-episodes", "1", "--save-model"]
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
+    with pytest.raises(SystemExit) as ended:
+        runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
+    out, err = capsys.readouterr()
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    failure = f"cannot write the logs to runs/{run_dir.name}: No space left on device"
+    if tag.startswith("charts"):  # mid-training: stopped as for a failing env
+        assert ended.value.code == 1
+        assert_stopped_with_a_whole_model(script, err, failure, LOGS_FAIL_AT[script], tmp_path)
+        assert "eval:" not in out
+    else:  # after training: the model is saved and evaluated, and the run still says its logs are short
+        assert ended.value.code == f"{script}: error: {failure}"
+        assert "training stopped" not in err and "eval: mean return" in out
+    assert "Traceback" not in err
+    assert len(FullDiskWriter.made) == 1 and FullDiskWriter.made[0].writes == FullDiskWriter.at  # nothing written after the failure
+
+
+def test_checked_writer_says_a_failure_of_its_thread_once_and_drops_what_follows(sac, tmp_path, monkeypatch):
+    handled = []
+    monkeypatch.setattr(threading, "excepthook", handled.append)  # the hook before the writer's
+    writer = sac.CheckedWriter(str(tmp_path / "logs"))
+    writer.add_scalar("a", 1.0, 0)
+    writer.flush()
+    assert writer.failure == ""
+    shutil.rmtree(tmp_path / "logs")  # the next record cannot be appended to the event file
+    writer.add_scalar("a", 2.0, 1)
+    deadline = time.monotonic() + 10
+    while not writer.failure and time.monotonic() < deadline:  # the thread fails on its own time; the next call says so
+        writer.add_text("b", "text")
+        time.sleep(0.01)
+    assert writer.failure == f"cannot write the logs to {tmp_path / 'logs'}: No such file or directory"
+    writer.add_scalar("a", 3.0, 2)
+    writer.close()  # neither raises
+    assert not (tmp_path / "logs").exists()
+    assert handled == []  # the writing thread's OSError went to no other hook
+
+    def other_thread():
+        raise ValueError("not the writer's")
+
+    thread = threading.Thread(target=other_thread)
+    thread.start()
+    thread.join()
+    assert [type(args.exc_value) for args in handled] == [ValueError]  # any other thread's error goes on as before
+
+
+FILE_SIZE_LIMIT = 8192  # bytes: more than a model of 8-unit networks (7.4 kB at most), less than a 2,048-step run's logs
+
+
+def with_a_file_size_limit() -> None:
+    """`ulimit -f` as a quota or a nearly full disk acts: a write past the limit fails with EFBIG
+    (SIGXFSZ ignored, as it would otherwise end the process first)."""
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (FILE_SIZE_LIMIT, FILE_SIZE_LIMIT))
+
+
+def test_logs_failing_for_real_end_each_script_in_one_line_with_its_model_saved(tmp_path):
+    """TensorBoard's own writer and its writing thread, which fails first and would print a traceback."""
+    started = {}
+    for script in SCRIPTS:  # side by side
+        cwd = tmp_path / script
+        cwd.mkdir()
+        args = [*without(without(SHORT_RUNS[script], "--total-timesteps"), "--hidden-size"), "--hidden-size", "8", "--total-timesteps", "2048", "--save-model"]
+        started[script] = (subprocess.Popen([sys.executable, str(ROOT / f"{script}.py"), *args], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                            text=True, preexec_fn=with_a_file_size_limit), cwd)  # fmt: skip
+    for script, (process, cwd) in started.items():
+        try:
+            out, err = process.communicate(timeout=300)
+        finally:
+            process.kill()
+        (run_dir,) = (cwd / "runs").iterdir()
+        stopped = re.search(rf"^{script}: error: cannot write the logs to runs/{run_dir.name}: File too large: training stopped at step ([\d,]+) of 2,048;"
+                            " saving the model without evaluating it$", err, re.M)  # fmt: skip
+        assert process.returncode == 1 and stopped, err
+        assert "Traceback" not in err and "Exception in thread" not in err, err
+        (events,) = run_dir.glob("events.out.tfevents.*")
+        assert events.stat().st_size <= FILE_SIZE_LIMIT
+        model = run_dir / f"{script}.cleanrl_model"
+        assert f"model saved to runs/{run_dir.name}/{model.name}" in out
+        assert np.isfinite(load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)[0])
