@@ -5,8 +5,12 @@
   Once on an env whose step costs next to nothing (a constant return), which isolates the wrapper's
   own cost from a simulator's noise, and once on Pendulum-v1 (as `gym.make` builds it) for scale.
 - `ask_baseline` (a baseline's exception ends the run keeping its model) against the bare call.
+- `CheckedWriter` (logs that cannot be written end the run keeping its model): the loop's check of it at
+  every step against nothing, and its `add_scalar` against TensorBoard's own, on writers of their own
+  in a temporary directory (at 1/100 of `--calls`: a scalar costs microseconds, and is logged about
+  once every 10 steps).
 
-The wrappers come from `jirl_sac_continuous.py` (the four scripts share both definitions, a test checks).
+The wrappers come from `jirl_sac_continuous.py` (the four scripts share these definitions, a test checks).
 Each repeat times both sides back to back (which first alternates), the best of 3 runs of `--calls` calls each; prints the
 median and range over the repeats of the time added per call.
 
@@ -18,6 +22,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
+import tempfile
 import timeit
 from pathlib import Path
 from typing import Callable
@@ -76,15 +81,27 @@ def main() -> None:
         return action
 
     obs = np.zeros(3, dtype=np.float32)
+    logs = tempfile.TemporaryDirectory()
+    checked_writer, writer = jirl.CheckedWriter(f"{logs.name}/checked"), jirl.SummaryWriter(f"{logs.name}/bare")
+    stop = jirl.StopRequest()
+    stop.restore()  # its state only: no signal handlers
+    step = iter(range(10**9))
     rows = [
-        *[(f"CheckedEnv.step vs the bare step, {name}", new, old) for name, (new, old) in sides.items()],
-        ("ask_baseline vs the bare call", lambda: jirl.ask_baseline(baseline, obs), lambda: baseline(obs)),
+        *[(f"CheckedEnv.step vs the bare step, {name}", new, old, args.calls) for name, (new, old) in sides.items()],
+        ("ask_baseline vs the bare call", lambda: jirl.ask_baseline(baseline, obs), lambda: baseline(obs), args.calls),
+        ("the loop's check of CheckedWriter vs nothing", lambda: checked_writer.failure and stop.reason is None, lambda: None, args.calls),
+        ("CheckedWriter.add_scalar vs SummaryWriter's", lambda: checked_writer.add_scalar("a", 1.0, next(step)), lambda: writer.add_scalar("a", 1.0, next(step)),
+         max(1, args.calls // 100)),
     ]
     print("| check | the call it wraps | added per call: median | range |")
     print("|---|---|---|---|")
-    for name, new, old in rows:
-        before, diffs = added(new, old, args.calls, args.repeats)
+    for name, new, old, calls in rows:
+        before, diffs = added(new, old, calls, args.repeats)
         print(f"| {name} | {before * 1e6:.2f} µs | {statistics.median(diffs) * 1e9:.0f} ns | {min(diffs) * 1e9:.0f} to {max(diffs) * 1e9:.0f} ns |")
+    checked_writer.close()
+    writer.close()
+    assert not checked_writer.failure, checked_writer.failure
+    logs.cleanup()
 
 
 if __name__ == "__main__":
