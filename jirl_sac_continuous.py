@@ -869,7 +869,9 @@ class CheckedWriter(SummaryWriter):
         self.checked(super().add_text, *args, **kwargs)
 
     def close(self) -> None:
-        self.checked(super().close)
+        self.checked(super().close)  # which joins the writing thread
+        if threading.excepthook == self.thread_failed:  # leave the process as it was found
+            threading.excepthook = self.other_threads_hook
 
     def checked(self, write: Callable, *args, **kwargs) -> None:
         if self.failure:

@@ -573,9 +573,6 @@ def test_checked_writer_says_a_failure_of_its_thread_once_and_drops_what_follows
         writer.add_text("b", "text")
         time.sleep(0.01)
     assert writer.failure == f"cannot write the logs to {tmp_path / 'logs'}: No such file or directory"
-    writer.add_scalar("a", 3.0, 2)
-    writer.close()  # neither raises
-    assert not (tmp_path / "logs").exists()
     assert handled == []  # the writing thread's OSError went to no other hook
 
     def other_thread():
@@ -585,6 +582,10 @@ def test_checked_writer_says_a_failure_of_its_thread_once_and_drops_what_follows
     thread.start()
     thread.join()
     assert [type(args.exc_value) for args in handled] == [ValueError]  # any other thread's error goes on as before
+    writer.add_scalar("a", 3.0, 2)
+    writer.close()  # neither raises
+    assert not (tmp_path / "logs").exists()
+    assert threading.excepthook == handled.append  # the hook it found is back
 
 
 FILE_SIZE_LIMIT = 8192  # bytes: more than a model of 8-unit networks (7.4 kB at most), less than a 2,048-step run's logs
@@ -606,18 +607,20 @@ def test_logs_failing_for_real_end_each_script_in_one_line_with_its_model_saved(
         args = [*without(without(SHORT_RUNS[script], "--total-timesteps"), "--hidden-size"), "--hidden-size", "8", "--total-timesteps", "2048", "--save-model"]
         started[script] = (subprocess.Popen([sys.executable, str(ROOT / f"{script}.py"), *args], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                             text=True, preexec_fn=with_a_file_size_limit), cwd)  # fmt: skip
-    for script, (process, cwd) in started.items():
-        try:
+    try:
+        for script, (process, cwd) in started.items():
             out, err = process.communicate(timeout=300)
-        finally:
+            (run_dir,) = (cwd / "runs").iterdir()
+            stopped = re.search(rf"^{script}: error: cannot write the logs to runs/{run_dir.name}: File too large: training stopped at step ([\d,]+) of 2,048;"
+                                " saving the model without evaluating it$", err, re.M)  # fmt: skip
+            assert process.returncode == 1 and stopped, err
+            assert "Traceback" not in err and "Exception in thread" not in err, err
+            (events,) = run_dir.glob("events.out.tfevents.*")
+            assert events.stat().st_size <= FILE_SIZE_LIMIT
+            model = run_dir / f"{script}.cleanrl_model"
+            assert f"model saved to runs/{run_dir.name}/{model.name}" in out
+            assert np.isfinite(load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)[0])
+    finally:  # a failed run leaves none of the others running
+        for process, _ in started.values():
             process.kill()
-        (run_dir,) = (cwd / "runs").iterdir()
-        stopped = re.search(rf"^{script}: error: cannot write the logs to runs/{run_dir.name}: File too large: training stopped at step ([\d,]+) of 2,048;"
-                            " saving the model without evaluating it$", err, re.M)  # fmt: skip
-        assert process.returncode == 1 and stopped, err
-        assert "Traceback" not in err and "Exception in thread" not in err, err
-        (events,) = run_dir.glob("events.out.tfevents.*")
-        assert events.stat().st_size <= FILE_SIZE_LIMIT
-        model = run_dir / f"{script}.cleanrl_model"
-        assert f"model saved to runs/{run_dir.name}/{model.name}" in out
-        assert np.isfinite(load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)[0])
+            process.communicate()
