@@ -240,6 +240,7 @@ class CarSession:
     def __init__(self, args: Common, mode: str) -> None:
         self.args, self.mode, self.period = args, mode, 1.0 / args.control_hz
         self.stop_requested = False
+        self.failed = False  # the run ended on an error (end_on_error): the process exits with status 1
         self.estop_unsent = False  # set by the signal handler when the link is down; close() says it
         # Ctrl-C, SIGTERM and SIGHUP e-stop the car while the session is open; close() puts the previous handlers back
         self._previous_handlers = {sig: signal.signal(sig, self._on_signal) for sig in stop_signals()}
@@ -291,6 +292,12 @@ class CarSession:
         if getattr(self, "link", None) is not None and not self.link.estop():  # at once, not at the next tick
             self.estop_unsent = True  # not printed here: that could re-enter a stderr write the signal interrupted
 
+    def end_on_error(self, message: str) -> None:
+        """End the run at this period for `message`, said on stderr; the car is stopped by the caller."""
+        self.stop_requested = True
+        self.failed = True
+        print(f"{self.mode}: error: {message}", file=sys.stderr)
+
     def estop(self) -> bool:
         """E-stop the car; False, said on stderr, if the link is down and only the watchdog can stop it."""
         if self.link.estop():
@@ -307,8 +314,7 @@ class CarSession:
         self.check_gamepad()  # every period, fresh frame or not
         if self.writer.failure and not self.stop_requested:  # a full disk: stop as for a dead camera (train saves its state)
             self.link.stop()
-            self.stop_requested = True
-            print(f"{self.mode}: error: {self.writer.failure}; stopping", file=sys.stderr)
+            self.end_on_error(f"{self.writer.failure}; stopping")
         if self.stop_requested:
             return None
         if self.world is not None:
@@ -320,16 +326,14 @@ class CarSession:
         except CameraFailed as err:  # no frame will come: stop now rather than after CAMERA_LOST_S of stale ones
             self.frames_dropped += 1
             self.link.stop()
-            self.stop_requested = True
-            print(f"{self.mode}: error: {err}; stopping", file=sys.stderr)
+            self.end_on_error(f"{err}; stopping")
             return None
         if frame is None or time.monotonic() - captured > 2.0 * self.period:
             self.frames_dropped += 1
             self.stale_periods += 1
             self.link.stop()
             if self.stale_periods * self.period >= CAMERA_LOST_S and not self.stop_requested:  # a dead camera, or a video's end
-                self.stop_requested = True
-                print(f"{self.mode}: error: no fresh camera frame for {self.stale_periods} periods ({CAMERA_LOST_S:.0f} s); stopping", file=sys.stderr)
+                self.end_on_error(f"no fresh camera frame for {self.stale_periods} periods ({CAMERA_LOST_S:.0f} s); stopping")
             return None
         self.stale_periods = 0
         return preprocess(frame, self.previous_action)
@@ -343,8 +347,7 @@ class CarSession:
             self.gamepad.poll()
         except GamepadLost as err:  # without its e-stop the car must not drive: stop it and end the run
             sent = self.estop()
-            self.stop_requested = True
-            print(f"{self.mode}: error: {err}{'; e-stopped' if sent else ''}", file=sys.stderr)
+            self.end_on_error(f"{err}{'; e-stopped' if sent else ''}")
             return
         if self.gamepad.was_pressed(self.args.estop_button):
             self.estop()
@@ -362,8 +365,7 @@ class CarSession:
         """Send `action` through the safety filter; the commands sent, or None (STOP, or the run is over)."""
         if not self.link.armed:  # the car no longer drives, and only a person re-arms it: end the run here
             if not self.stop_requested:
-                self.stop_requested = True
-                print(f"{self.mode}: error: the controller is no longer armed ({self.disarm_reason()}); stopping", file=sys.stderr)
+                self.end_on_error(f"the controller is no longer armed ({self.disarm_reason()}); stopping")
             return None
         commands = self.safety(action)
         if commands is None:
@@ -499,6 +501,8 @@ def drive_and_report(args: Common, mode: str, policy: Callable[[np.ndarray], np.
     finally:
         session.close()
     report(session, rewards, mode)
+    if session.failed:  # reported all the same; the status says the drive did not end as asked
+        raise SystemExit(1)
     return rewards
 
 
@@ -732,7 +736,7 @@ def train_holding(args: Train) -> dict:
         while counters["step"] < args.total_steps and not session.stop_requested:
             if "learner_error" in counters:  # the background learner failed: stop the car and end the run
                 session.link.stop()
-                print(f"train: error: the background learner failed ({counters.pop('learner_error')}); stopping", file=sys.stderr)
+                session.end_on_error(f"the background learner failed ({counters.pop('learner_error')}); stopping")
                 break
             step = counters["step"]
             if step % args.train_every == 0 and step != last_pause:
@@ -833,6 +837,8 @@ def train_holding(args: Train) -> dict:
             shadow.close()
     counters["rl_control_fraction"] = sum(rl_control) / len(rl_control) if rl_control else 0.0
     print("train: " + ", ".join(f"{key} {value:.4g}" if isinstance(value, float) else f"{key} {value}" for key, value in counters.items()))
+    if session.failed:  # the state is saved; the status says the training did not end as asked
+        raise SystemExit(1)
     return counters
 
 

@@ -190,8 +190,8 @@ def test_a_device_that_is_no_joystick_is_refused_and_closed(tmp_path):
 )
 def test_a_gamepad_without_the_chosen_button_or_axis_is_refused_before_the_car_is_armed(tmp_path, monkeypatch, option, missing):
     path = fifo_gamepad(tmp_path, monkeypatch)  # 8 axes, 11 buttons
-    armed = []
-    monkeypatch.setattr(jetracer.HostLink, "arm", lambda self: armed.append(1) or True)
+    armed, real_arm = [], jetracer.HostLink.arm
+    monkeypatch.setattr(jetracer.HostLink, "arm", lambda self: armed.append(1) or real_arm(self))
     with pytest.raises(SystemExit, match=f"baseline: error: gamepad '{path}' has buttons 0-10 and axes 0-7: {missing}$"):
         jetracer.main(["baseline", "--steps", "5", "--gamepad", path, "--log-dir", str(tmp_path / "runs"), *option])
     assert not armed and not (tmp_path / "runs").exists()
@@ -274,6 +274,18 @@ def test_a_lost_gamepad_raises_gamepad_lost_and_closes_quietly(tmp_path, monkeyp
     pad.close()  # the fd is gone already: no error
 
 
+def exits_with_status_1(run: Callable[[], object]) -> None:
+    """`run` ends on an error, after the car stopped (and `train` saved its state): status 1, not 0."""
+    with pytest.raises(SystemExit) as ended:
+        run()
+    assert ended.value.code == 1
+
+
+def reported_steps(out: str, mode: str) -> int:
+    """The steps driven, as the run's report on stdout says."""
+    return int(re.search(rf"^{mode}: (\d+) steps, mean reward per step", out, re.M).group(1))
+
+
 def test_training_e_stops_and_keeps_its_state_when_the_gamepad_is_lost(tmp_path, monkeypatch, capsys):
     from deploy import io
 
@@ -295,7 +307,7 @@ def test_training_e_stops_and_keeps_its_state_when_the_gamepad_is_lost(tmp_path,
     state = tmp_path / "train.pt"
     args = ["train", "--total-steps", "500", "--gamepad", path, "--train-every", "40", "--gradient-steps", "2",
             "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST]  # fmt: skip
-    jetracer.main(args)
+    exits_with_status_1(lambda: jetracer.main(args))
     assert estops[0] == 61  # e-stopped on the poll that found the gamepad gone, before close()
     assert len(polls) == 61  # and no control period after it
     assert torch.load(state, weights_only=True)["counters"]["step"] == 58  # saved on the way out, nothing lost
@@ -321,10 +333,10 @@ def test_a_gamepad_lost_while_the_link_is_down_does_not_claim_an_e_stop(tmp_path
     real_send = jetracer.HostLink._send
     monkeypatch.setattr(io.Gamepad, "poll", poll)
     monkeypatch.setattr(jetracer.HostLink, "_send", unwritable)
-    rewards = jetracer.baseline(jetracer.Baseline(steps=300, gamepad=path, log_dir=str(tmp_path)))
-    assert len(rewards) == 20
-    err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["baseline: the e-stop could not be sent (the link is down); the controller's watchdog stops the car",
+    exits_with_status_1(lambda: jetracer.baseline(jetracer.Baseline(steps=300, gamepad=path, log_dir=str(tmp_path))))
+    out, err = capsys.readouterr()
+    assert reported_steps(out, "baseline") == 20
+    assert err.strip().splitlines() == ["baseline: the e-stop could not be sent (the link is down); the controller's watchdog stops the car",
                    f"baseline: error: gamepad '{path}' lost (No such device)"]  # fmt: skip
 
 
@@ -345,8 +357,8 @@ def test_training_ends_and_keeps_its_state_when_the_watchdog_trips(tmp_path, mon
     # a host stall longer than the watchdog: the controller disarms itself
     at_period(monkeypatch, 50, lambda session: session.link._port.controller.poll(time.monotonic() + 10.0))
     state = tmp_path / "train.pt"
-    jetracer.main(["train", "--total-steps", "500", "--train-every", "40", "--gradient-steps", "2",
-                   "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST])  # fmt: skip
+    exits_with_status_1(lambda: jetracer.main(["train", "--total-steps", "500", "--train-every", "40", "--gradient-steps", "2",
+                                               "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST]))  # fmt: skip
     assert 50 <= torch.load(state, weights_only=True)["counters"]["step"] <= 52  # stopped within a period or two, saved
     err = capsys.readouterr().err
     assert "train: error: the controller is no longer armed (its watchdog tripped" in err and len(err.strip().splitlines()) == 1
@@ -374,9 +386,10 @@ def test_ctrl_c_while_the_link_is_down_ends_the_training_cleanly_and_keeps_its_s
 def test_a_drive_ends_when_the_controller_restarts_unarmed(tmp_path, monkeypatch, capsys):
     # a brown-out restart: the controller comes back unarmed and says nothing
     at_period(monkeypatch, 30, lambda session: setattr(session.link._port.controller, "armed", False))
-    rewards = jetracer.baseline(jetracer.Baseline(steps=300, log_dir=str(tmp_path)))
-    assert 30 <= len(rewards) <= 32  # no reward is counted for periods the car did not drive
-    assert "baseline: error: the controller is no longer armed (it refused a command as not armed; did it restart?)" in capsys.readouterr().err
+    exits_with_status_1(lambda: jetracer.baseline(jetracer.Baseline(steps=300, log_dir=str(tmp_path))))
+    out, err = capsys.readouterr()
+    assert 30 <= reported_steps(out, "baseline") <= 32  # no reward is counted for periods the car did not drive
+    assert "baseline: error: the controller is no longer armed (it refused a command as not armed; did it restart?)" in err
 
 
 def stale_camera(monkeypatch, stale: Callable[[int], bool]) -> list:
@@ -402,12 +415,14 @@ def test_a_camera_that_stops_delivering_ends_the_run(mode, tmp_path, monkeypatch
     reads = stale_camera(monkeypatch, lambda n: n > 30)  # frozen after 30 periods
     state = tmp_path / "train.pt"
     if mode == "baseline":
-        assert len(jetracer.baseline(jetracer.Baseline(steps=300, log_dir=str(tmp_path)))) == 30
+        exits_with_status_1(lambda: jetracer.baseline(jetracer.Baseline(steps=300, log_dir=str(tmp_path))))
     else:  # before, training waited for a fresh frame for ever, the car stopped
-        jetracer.main(["train", "--total-steps", "500", "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST])
+        exits_with_status_1(lambda: jetracer.main(["train", "--total-steps", "500", "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST]))
         assert torch.load(state, weights_only=True)["counters"]["step"] == 30  # saved on the way out
+    out, err = capsys.readouterr()
+    assert mode == "train" or reported_steps(out, mode) == 30
     assert len(reads) == 30 + 40  # 2 s of stale frames at 20 Hz, then the run ends
-    assert f"{mode}: error: no fresh camera frame for 40 periods (2 s); stopping" in capsys.readouterr().err
+    assert f"{mode}: error: no fresh camera frame for 40 periods (2 s); stopping" in err
 
 
 @pytest.mark.parametrize("mode", ["baseline", "train"])
@@ -429,12 +444,13 @@ def test_a_camera_that_fails_ends_the_run_at_once_saying_why(mode, tmp_path, mon
     monkeypatch.setattr(jetracer.HostLink, "stop", lambda self: stops.append(len(reads)) or real_stop(self))
     state = tmp_path / "train.pt"
     if mode == "baseline":
-        assert len(jetracer.baseline(jetracer.Baseline(steps=300, log_dir=str(tmp_path)))) == 30
+        exits_with_status_1(lambda: jetracer.baseline(jetracer.Baseline(steps=300, log_dir=str(tmp_path))))
     else:
-        jetracer.main(["train", "--total-steps", "500", "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST])
+        exits_with_status_1(lambda: jetracer.main(["train", "--total-steps", "500", "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST]))
         assert torch.load(state, weights_only=True)["counters"]["step"] == 30  # saved on the way out
     assert len(reads) == 31 and stops[0] == 31  # the car stopped at the failed read; not 2 s of stale frames
-    err = capsys.readouterr().err
+    out, err = capsys.readouterr()
+    assert mode == "train" or reported_steps(out, mode) == 30
     assert f"{mode}: error: camera 0 delivered a (480, 640) uint16 frame; expected 8-bit grey, BGR or BGRA; stopping" in err
     assert "no fresh camera frame" not in err and "Traceback" not in err
 
@@ -471,8 +487,8 @@ def test_a_failing_background_learner_stops_the_car_and_keeps_the_state(tmp_path
 
     monkeypatch.setattr(jetracer.jirl.SoftActorCritic, "update", update)
     state = tmp_path / "train.pt"
-    jetracer.main(["train", "--total-steps", "1000", "--learner", "background", "--train-every", "10", "--gradient-steps", "5",
-                   "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST])  # fmt: skip
+    exits_with_status_1(lambda: jetracer.main(["train", "--total-steps", "1000", "--learner", "background", "--train-every", "10", "--gradient-steps", "5",
+                                               "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST]))  # fmt: skip
     counters = torch.load(state, weights_only=True)["counters"]
     assert counters["updates"] == 5 and counters["step"] < 100  # ended soon after, not at 1000 steps without a learner
     assert "learner_error" not in counters  # a resume starts clean
@@ -542,13 +558,15 @@ def test_logs_that_cannot_be_written_stop_the_car_and_training_keeps_its_state(m
     monkeypatch.setattr(SummaryWriter, "add_scalar", add_scalar)
     controllers = record_closed_controllers(monkeypatch)
     state = tmp_path / "train.pt"
-    if mode == "baseline":  # the car stops at the period after: 201 driven
-        assert len(jetracer.baseline(jetracer.Baseline(steps=1000, log_dir=str(tmp_path)))) == 201
+    if mode == "baseline":  # the car stops at the period after the failed logs: 201 driven
+        exits_with_status_1(lambda: jetracer.baseline(jetracer.Baseline(steps=1000, log_dir=str(tmp_path))))
+        out, err = capsys.readouterr()
+        assert reported_steps(out, mode) == 201
     else:
-        jetracer.main(["train", "--total-steps", "1000", "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST])
+        exits_with_status_1(lambda: jetracer.main(["train", "--total-steps", "1000", "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST]))
+        err = capsys.readouterr().err
         assert torch.load(state, weights_only=True)["counters"]["step"] == 201  # saved on the way out
     (log_dir,) = tmp_path.glob(f"{mode}__*")
-    err = capsys.readouterr().err
     assert f"{mode}: error: cannot write the logs to {log_dir}: No space left on device; stopping" in err
     assert "Traceback" not in err and "Exception in thread" not in err, err
     assert controllers[0].throttle == 0.0 and controllers[0].estop_latched  # closed: STOP, ESTOP
