@@ -11,6 +11,7 @@ import threading
 import time
 import traceback
 from dataclasses import dataclass
+from types import FrameType
 from typing import Callable, Literal, Optional
 
 import gymnasium as gym
@@ -687,24 +688,42 @@ class StopRequest:
     """Why the training ends before its last step: Ctrl-C (SIGINT) or SIGTERM (`kill`, `timeout`, a
     cluster's time limit), caught so that the run ends at the training loop's next turn instead of at
     once; or an env, a baseline or the logs that failed. Either way --save-model still saves what was
-    learnt. The first signal puts the previous handlers back, so a second one acts as it always did."""
+    learnt. The first signal puts the previous handlers back, so a second one acts as it always did.
+    A signal that comes when the loop that made it has gone (it crashed in a Python that goes on: runpy,
+    IPython's %run) is handed to the previous handler at once, instead of being kept for a loop that
+    will never read it."""
 
     def __init__(self) -> None:
         self.reason: Optional[str] = None  # said when the training stops
         self.status = 0  # the run's exit status then
         self.previous: dict = {}
+        self.loop = sys._getframe(1).f_code  # the code that made this request and runs the training loop
         if threading.current_thread() is not threading.main_thread():  # only the main thread may handle signals
             return
         for sig in (signal.SIGINT, signal.SIGTERM):
             if signal.getsignal(sig) is not signal.SIG_IGN:  # an ignored one stays ignored (a script's background job ignores Ctrl-C)
                 self.previous[sig] = signal.signal(sig, self.request)
 
-    def request(self, signum: int, frame: object) -> None:
+    def request(self, signum: int, frame: Optional[FrameType]) -> None:
+        if frame is not None and not self.running(frame):  # the loop is gone: the signal acts as it did before it
+            handler = self.previous.get(signum)
+            self.restore()
+            if callable(handler):
+                handler(signum, frame)  # Python's own raises KeyboardInterrupt
+            else:
+                signal.raise_signal(signum)  # the default action, back in place
+            return
         self.end(f"{signal.Signals(signum).name} received", 128 + signum)  # the status a shell gives a process the signal ended
 
     def end(self, reason: str, status: int) -> None:
         self.reason, self.status = reason, status
         self.restore()
+
+    def running(self, frame: Optional[FrameType]) -> bool:
+        """Whether the loop's code is on the stack the signal interrupted."""
+        while frame is not None and frame.f_code is not self.loop:
+            frame = frame.f_back
+        return frame is not None
 
     def restore(self) -> None:
         for sig, handler in self.previous.items():
