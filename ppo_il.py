@@ -689,15 +689,15 @@ class StopRequest:
     cluster's time limit), caught so that the run ends at the training loop's next turn instead of at
     once; or an env, a baseline or the logs that failed. Either way --save-model still saves what was
     learnt. The first signal puts the previous handlers back, so a second one acts as it always did.
-    A signal that comes when the loop that made it has gone (it crashed in a Python that goes on: runpy,
-    IPython's %run) is handed to the previous handler at once, instead of being kept for a loop that
+    A signal that comes after the loop that made the request has gone (it crashed in a Python that goes
+    on: runpy, IPython's %run) goes to the previous handler at once, instead of waiting for a loop that
     will never read it."""
 
     def __init__(self) -> None:
         self.reason: Optional[str] = None  # said when the training stops
         self.status = 0  # the run's exit status then
         self.previous: dict = {}
-        self.loop = sys._getframe(1).f_code  # the code that made this request and runs the training loop
+        self.loop_code = sys._getframe(1).f_code  # the code that made this request and runs the training loop
         if threading.current_thread() is not threading.main_thread():  # only the main thread may handle signals
             return
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -721,7 +721,7 @@ class StopRequest:
 
     def running(self, frame: Optional[FrameType]) -> bool:
         """Whether the loop's code is on the stack the signal interrupted."""
-        while frame is not None and frame.f_code is not self.loop:
+        while frame is not None and frame.f_code is not self.loop_code:
             frame = frame.f_back
         return frame is not None
 

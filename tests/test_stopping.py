@@ -155,6 +155,7 @@ def test_sigterm_after_the_loop_is_gone_ends_the_process_as_by_default(tmp_path)
         "def loop():\n"
         "    return script['StopRequest']()  # a loop that made its request and ended without restore()\n"
         "stop = loop()\n"
+        "assert signal.getsignal(signal.SIGTERM) == stop.request, 'no handler to test'\n"
         "os.kill(os.getpid(), signal.SIGTERM)\n"
         "time.sleep(5)\n"
         "print('went on after SIGTERM', stop.reason)\n"
