@@ -109,42 +109,6 @@ def test_outside_the_main_thread_no_handler_is_set(sac, handlers):
     assert made[0].previous == {} and {sig: signal.getsignal(sig) for sig in handlers} == handlers
 
 
-class BuggyWriter(tensorboard.SummaryWriter):
-    """A writer with a bug at the first episode's return, which no check of a run catches: the loop
-    crashes, as on a bug of ours or a MemoryError."""
-
-    made: list = []
-
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        BuggyWriter.made.append(self)
-
-    def add_scalar(self, tag, *args, **kwargs):
-        if tag == "charts/episodic_return":
-            raise RuntimeError("a bug in the loop")
-        super().add_scalar(tag, *args, **kwargs)
-
-
-@pytest.mark.parametrize("script", SCRIPTS)
-def test_ctrl_c_after_a_loop_crashed_in_process_interrupts_at_once(script, tmp_path, monkeypatch, handlers):
-    """In a Python that goes on after the run crashed (runpy, IPython's %run), the handler the loop left
-    hands the next Ctrl-C to Python's own, instead of keeping it for a loop that will never read it."""
-    monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(tensorboard, "SummaryWriter", BuggyWriter)
-    monkeypatch.setattr(BuggyWriter, "made", [])
-    monkeypatch.setattr(sys, "argv", [f"{script}.py", *SHORT_RUNS[script]])
-    with pytest.raises(RuntimeError, match="a bug in the loop"):
-        runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
-    (writer,) = BuggyWriter.made
-    writer.close()  # as the script would have; puts back the thread hook it set
-    left = signal.getsignal(signal.SIGINT)
-    assert type(getattr(left, "__self__", None)).__name__ == "StopRequest"  # the crash skipped the loop's restore()
-    with pytest.raises(KeyboardInterrupt):
-        os.kill(os.getpid(), signal.SIGINT)
-        time.sleep(1)
-    assert {sig: signal.getsignal(sig) for sig in handlers} == handlers
-
-
 def test_sigterm_after_the_loop_is_gone_ends_the_process_as_by_default(tmp_path):
     """A SIGTERM that the loop that made the handler can no longer read takes the default action: the
     process ends, signalled, instead of going on as if nothing came."""
@@ -573,8 +537,41 @@ class FullDiskWriter(tensorboard.SummaryWriter):
     def add_scalar(self, tag, *args, **kwargs):
         self.writes += tag == self.tag
         if self.writes >= self.at:
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            raise self.error()  # not "failure": CheckedWriter, built on this class, has an attribute of that name
         super().add_scalar(tag, *args, **kwargs)
+
+    def error(self) -> Exception:
+        return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+class BuggyWriter(FullDiskWriter):
+    """A writer with a bug at the first episode's return, which no check of a run catches: the loop
+    crashes, as on a bug of ours or a MemoryError."""
+
+    at = 1
+
+    def error(self) -> Exception:
+        return RuntimeError("a bug in the loop")
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_ctrl_c_after_a_loop_crashed_in_process_interrupts_at_once(script, tmp_path, monkeypatch, handlers):
+    """In a Python that goes on after the run crashed (runpy, IPython's %run), the handler the loop left
+    hands the next Ctrl-C to Python's own, instead of keeping it for a loop that will never read it."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(tensorboard, "SummaryWriter", BuggyWriter)
+    monkeypatch.setattr(BuggyWriter, "made", [])
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", *SHORT_RUNS[script]])
+    with pytest.raises(RuntimeError, match="a bug in the loop"):
+        runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
+    (writer,) = BuggyWriter.made
+    writer.close()  # as the script would have; puts back the thread hook it set
+    left = signal.getsignal(signal.SIGINT)
+    assert type(getattr(left, "__self__", None)).__name__ == "StopRequest"  # the crash skipped the loop's restore()
+    with pytest.raises(KeyboardInterrupt):
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(1)
+    assert {sig: signal.getsignal(sig) for sig in handlers} == handlers
 
 
 @pytest.fixture
