@@ -36,12 +36,12 @@ EPISODE_LIMIT = 100_000  # steps: an episode still running after this many is in
 IL_SEED_OFFSET = 2_000_000  # the imitation phase's baseline episodes neither
 
 # RL Zoo's tuned PPO hyperparameters (rl-baselines3-zoo, hyperparams/ppo.yml), one env here:
-# num_steps = n_envs * n_steps and num_minibatches = num_steps / batch_size keep the same batches.
+# num_steps = n_envs * n_steps keeps the same rollout.
 TUNED = {
-    "Pendulum-v1": dict(num_steps=4096, num_minibatches=64, gamma=0.9, gae_lambda=0.95, update_epochs=10, learning_rate=1e-3, ent_coef=0.0),
-    "LunarLanderContinuous-v3": dict(num_steps=16384, num_minibatches=256, gamma=0.999, gae_lambda=0.98, update_epochs=4, learning_rate=3e-4, ent_coef=0.01),
+    "Pendulum-v1": dict(num_steps=4096, gamma=0.9, gae_lambda=0.95, update_epochs=10, learning_rate=1e-3, ent_coef=0.0),
+    "LunarLanderContinuous-v3": dict(num_steps=16384, gamma=0.999, gae_lambda=0.98, update_epochs=4, learning_rate=3e-4, ent_coef=0.01),
 }
-DEFAULTS = dict(num_steps=2048, num_minibatches=32, gamma=0.99, gae_lambda=0.95, update_epochs=10, learning_rate=3e-4, ent_coef=0.0)
+DEFAULTS = dict(num_steps=2048, gamma=0.99, gae_lambda=0.95, update_epochs=10, learning_rate=3e-4, ent_coef=0.0)
 
 
 @dataclass
@@ -75,7 +75,7 @@ class Args:
     gae_lambda: Optional[float] = None
     """the lambda of generalized advantage estimation (Lunar Lander 0.98, else 0.95)"""
     num_minibatches: Optional[int] = None
-    """minibatches per epoch (rollout / 64 for the tuned envs, else 32)"""
+    """minibatches per epoch (--num-steps / 64 rounded down, at least 1)"""
     update_epochs: Optional[int] = None
     """epochs per rollout (Lunar Lander 4, else 10)"""
     norm_adv: bool = True
@@ -162,11 +162,14 @@ class Args:
 
 
 def resolve_hyperparameters(args: Args) -> Args:
-    """Fill every None field with RL Zoo's tuned value for the env, else the generic default."""
+    """Fill every None field with RL Zoo's tuned value for the env, else the generic default; unset
+    minibatches hold 64 steps, also of a --num-steps the user set."""
     tuned = TUNED.get(args.env_id, DEFAULTS)
     for name, value in tuned.items():
         if getattr(args, name) is None:
             setattr(args, name, value)
+    if args.num_minibatches is None:  # 64: the zoo's batch_size for both envs, CleanRL's 2048 steps / 32
+        args.num_minibatches = max(1, args.num_steps // 64)
     return args
 
 

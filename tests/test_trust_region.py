@@ -305,3 +305,14 @@ def test_zoo_hyperparameters_fill_only_what_the_user_left_unset():
     assert (args.gamma, args.n_critic_updates, args.num_steps, args.norm_obs) == (0.9, 15, 2048, False)
     args = trpo.resolve_hyperparameters(trpo.Args(env_id="MountainCarContinuous-v0"))
     assert (args.gamma, args.n_critic_updates) == (0.99, 10)
+
+
+def test_unset_ppo_minibatches_hold_64_steps_of_the_rollout_the_user_set():
+    # RL Zoo's 4096 / 64, 16384 / 256 and CleanRL's 2048 / 32 are all minibatches of 64 steps
+    expected = {"Pendulum-v1": 64, "LunarLanderContinuous-v3": 256, "MountainCarContinuous-v0": 32}
+    for env_id, minibatches in expected.items():
+        assert ppo.resolve_hyperparameters(ppo.Args(env_id=env_id)).num_minibatches == minibatches
+    # a shorter rollout keeps the minibatch size, not the count (64 minibatches of 4 steps before)
+    assert ppo.resolve_hyperparameters(ppo.Args(num_steps=256)).num_minibatches == 4
+    assert ppo.resolve_hyperparameters(ppo.Args(num_steps=100)).num_minibatches == 1
+    assert ppo.resolve_hyperparameters(ppo.Args(num_steps=256, num_minibatches=8)).num_minibatches == 8
