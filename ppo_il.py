@@ -162,8 +162,8 @@ class Args:
 
 
 def resolve_hyperparameters(args: Args) -> Args:
-    """Fill every None field with RL Zoo's tuned value for the env, else the generic default; unset
-    minibatches hold 64 steps, also of a --num-steps the user set."""
+    """Fill every None field with RL Zoo's tuned value for the env, else the generic default; an unset
+    --num-minibatches gives minibatches of 64 steps, whatever --num-steps is."""
     tuned = TUNED.get(args.env_id, DEFAULTS)
     for name, value in tuned.items():
         if getattr(args, name) is None:

@@ -77,7 +77,7 @@ def test_the_trust_region_scripts_repeat_sacs_regret_code_word_for_word(script):
 
 def test_trpo_il_repeats_every_ppo_il_definition_but_its_settings():
     ppo, trpo = top_level("ppo_il"), top_level("trpo_il")
-    settings = {"TUNED", "DEFAULTS", "Args", "resolve_hyperparameters"}  # each method's own hyperparameters
+    settings = {"TUNED", "DEFAULTS", "Args", "resolve_hyperparameters"}  # each method's own hyperparameters (PPO's minibatches)
     assert set(ppo) <= set(trpo), f"missing from trpo_il.py: {sorted(set(ppo) - set(trpo))}"
     drifted = [name for name in ppo if name not in settings and ppo[name] != trpo[name]]
     assert drifted == [], f"edit these in both scripts: {drifted}"
