@@ -27,7 +27,7 @@ import sys
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Iterator, List, Literal, Optional, Tuple
 
 import numpy as np
@@ -136,9 +136,9 @@ CAR_IGNORES = {
 
 def car_jirl_defaults() -> jirl.Args:
     # The paper's car settings (report Tables I-III): 64 units, batch 64, buffer 10k, K = 10, sigma^2 = 0.01;
-    # guidance by time (the car's laps are no episodes to compare with the baseline's)
+    # guidance by time (the car's laps are no episodes to compare with the baseline's), over half of --total-steps
     return jirl.Args(env_id="JetRacer", hidden_size=64, batch_size=64, buffer_size=10_000, learning_starts=300,
-                     gate_k=10, penalty_sigma2=0.01, guidance_steps=27_000, guidance_schedule="geometric")  # fmt: skip
+                     gate_k=10, penalty_sigma2=0.01, guidance_schedule="geometric")  # fmt: skip
 
 
 @dataclass
@@ -541,6 +541,7 @@ def save_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
         "buffer_pos": rb.pos,
         "counters": counters,
         "hidden_size": args.jirl.hidden_size,
+        "guidance_steps": args.jirl.guidance_steps,  # a resume keeps the hand-over's horizon
     }
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     write_atomically(path, lambda tmp: jirl.write_checkpoint(tmp, state), create)
@@ -574,7 +575,9 @@ def lock_path(state_path: str) -> str:
     return f"{state_path}.lock"
 
 
-def load_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuffer) -> dict:
+def load_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuffer) -> Tuple[dict, Optional[int]]:
+    """Load the agent and replay buffer saved at path into sac and rb; return the counters and the
+    guidance horizon the training ran with (None in a state saved before the horizon was)."""
     import torch
 
     try:
@@ -603,6 +606,9 @@ def load_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
         raise ValueError(f"{path} is a damaged {TRAIN_STATE_FORMAT} file: it has no {', '.join(missing)}")
     if state["hidden_size"] != sac.args.hidden_size:  # checked before anything is loaded into the agent
         raise ValueError(f"{path} holds an agent of {state['hidden_size']} units, not --jirl.hidden-size {sac.args.hidden_size}")
+    guidance = state.get("guidance_steps")
+    if guidance is not None and not (type(guidance) is int and guidance >= 0):
+        raise ValueError(f"{path} is a damaged {TRAIN_STATE_FORMAT} file: its guidance_steps is {guidance!r}")
     # The rows are saved in ring order with the next write position; rolled, they run oldest to newest,
     # so a buffer of another capacity takes the newest rows and goes on writing after them.
     try:  # a failure here leaves a half-loaded agent, which the caller discards: the run ends
@@ -616,7 +622,7 @@ def load_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
     rb.size, rb.pos = kept, kept % rb.capacity
     if kept < n:
         print(f"resume: --jirl.buffer-size {rb.capacity} keeps the newest {kept} of the {n} saved transitions")
-    return state["counters"]
+    return state["counters"], guidance
 
 
 @contextlib.contextmanager
@@ -685,10 +691,10 @@ def train_holding(args: Train) -> dict:
         rb = jirl.ReplayBuffer(hp.buffer_size, OBS_SIZE, 2, args.seed)
     except ValueError as err:  # more than memory holds
         raise SystemExit(f"train: error: --jirl.buffer-size {hp.buffer_size}: {err}") from None
-    counters = dict(TRAIN_COUNTERS)
+    counters, saved_guidance = dict(TRAIN_COUNTERS), None
     if args.resume:
         try:
-            counters = load_training_state(args.checkpoint, sac, rb)
+            counters, saved_guidance = load_training_state(args.checkpoint, sac, rb)
         except (ValueError, FileNotFoundError) as err:
             raise SystemExit(f"train: error: {err}") from err  # the cause tells holding() whether the file is a state
         if counters["step"] >= args.total_steps:  # the car would be armed to drive no step
@@ -697,6 +703,14 @@ def train_holding(args: Train) -> dict:
         print(f"resumed at step {counters['step']} with {rb.size} transitions")
     elif os.path.exists(args.checkpoint):  # a fresh run would overwrite it at its first pause
         raise SystemExit(f"train: error: {args.checkpoint} holds an earlier training; pass --resume to continue it, or another --checkpoint")
+    # The hand-over's horizon: as given, else the one the training started with, else half of --total-steps
+    guidance = hp.guidance_steps if hp.guidance_steps is not None else saved_guidance
+    if guidance is None:
+        guidance = args.total_steps // 2
+    if saved_guidance is not None and guidance != saved_guidance:
+        print(f"resume: --jirl.guidance-steps {guidance} replaces the training's {saved_guidance}")
+    args = replace(args, jirl=replace(hp, guidance_steps=guidance))  # saved with the state
+    hp = args.jirl
 
     def checkpoint(create: bool = False) -> None:
         try:
@@ -721,7 +735,6 @@ def train_holding(args: Train) -> dict:
     if session.world is not None:
         shadow = SimWorld(_NullController(), seed=args.seed)
         shadow_follower, shadow_previous = LaneFollower(), np.array(START_ACTION, dtype=np.float32)
-    guidance = hp.guidance_steps if hp.guidance_steps is not None else args.total_steps // 2
     previous: Optional[tuple] = None  # (obs, stored action, rl_action, rl_acted)
     obs = None
     lock = threading.Lock()  # the background learner's updates against the loop's buffer writes

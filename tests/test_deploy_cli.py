@@ -472,7 +472,8 @@ def test_a_stale_frame_ends_the_training_episode_for_the_baseline_too(tmp_path, 
     stale_camera(monkeypatch, lambda n: 21 <= n <= 23)  # three stale periods
     resets = []
     monkeypatch.setattr(jetracer.LaneFollower, "reset", lambda self: resets.append(1) or setattr(self, "previous_error", None))
-    jetracer.main(["train", "--total-steps", "60", "--checkpoint", str(tmp_path / "t.pt"), "--log-dir", str(tmp_path), *FAST])
+    guided = ["--jirl.guidance-steps", "27000"]  # the baseline keeps control: no lane departure starts an episode
+    jetracer.main(["train", "--total-steps", "60", "--checkpoint", str(tmp_path / "t.pt"), "--log-dir", str(tmp_path), *FAST, *guided])
     assert len(resets) == 3  # its steering derivative does not span the gap (the car never left the lane here)
 
 
@@ -659,6 +660,33 @@ def test_train_acts_with_the_mean_after_guidance_when_asked(tmp_path, monkeypatc
     actions = np.stack([action for _, action in after])
     assert np.allclose(actions, means, atol=1e-6) == deterministic  # else sampled around the mean
     assert [step for step in logged if step < 120] == [0, 25, 50, 75, 100]  # --jirl.log-every is the car's too
+
+
+def test_train_hands_over_within_its_own_total_steps_and_a_resume_keeps_that_horizon(tmp_path, monkeypatch, capsys):
+    horizons = []
+    real_guidance_c = jetracer.jirl.guidance_c
+    monkeypatch.setattr(jetracer.jirl, "guidance_c", lambda c, step, horizon, schedule: horizons.append(horizon) or real_guidance_c(c, step, horizon, schedule))
+    state = tmp_path / "t.pt"
+    common = ["--checkpoint", str(state), "--log-dir", str(tmp_path), "--jirl.learning-starts", "1000", "--jirl.hidden-size", "16"]
+
+    def train(*options: str) -> set:
+        horizons.clear()
+        jetracer.main(["train", *common, *options])
+        assert torch.load(state, weights_only=True)["guidance_steps"] == horizons[-1], "saved with the state"
+        return set(horizons)
+
+    assert train("--total-steps", "40") == {20}  # half of this training's steps (it was 27,000 whatever the length)
+    assert train("--resume", "--total-steps", "100") == {20}, "a longer resume keeps the horizon the training started with"
+    assert "replaces" not in capsys.readouterr().out
+    assert train("--resume", "--total-steps", "120", "--jirl.guidance-steps", "30") == {30}  # one given is used, and said
+    assert "resume: --jirl.guidance-steps 30 replaces the training's 20" in capsys.readouterr().out
+    saved = torch.load(state, weights_only=True)
+    torch.save({key: value for key, value in saved.items() if key != "guidance_steps"}, state)  # as saved before the horizon was
+    assert train("--resume", "--total-steps", "140") == {70}
+    torch.save({**saved, "guidance_steps": -5}, state)
+    with pytest.raises(SystemExit, match="is a damaged jirl-car-training-v2 file: its guidance_steps is -5"):
+        jetracer.main(["train", *common, "--resume", "--total-steps", "160"])
+    assert torch.load(state, weights_only=True)["guidance_steps"] == -5, "left as it was"
 
 
 @pytest.mark.parametrize(
