@@ -744,6 +744,20 @@ def train_holding(args: Train) -> dict:
     if args.learner == "background":
         learner = threading.Thread(target=background_learner, args=(sac, rb, counters, args, lock, finished), daemon=True)
         learner.start()
+    def optimise(step: int) -> None:
+        """Pause-and-train: the car waits, stopped, for --gradient-steps updates."""
+        session.link.stop()
+        if rb.size >= max(hp.learning_starts, hp.batch_size):
+            losses = None
+            for _ in range(args.gradient_steps):
+                session.check_gamepad()  # an e-stop tapped during the pause still ends the run
+                if session.stop_requested:
+                    break
+                losses = sac.update(rb.sample(hp.batch_size), counters["updates"])
+                counters["updates"] += 1
+            for name, value in (losses or {}).items():
+                session.writer.add_scalar(f"losses/{name}", value.item(), step)
+
     last_pause = counters["step"]
     try:
         while counters["step"] < args.total_steps and not session.stop_requested:
@@ -756,17 +770,7 @@ def train_holding(args: Train) -> dict:
                 last_pause = step
                 with lock:
                     if args.learner == "pause":
-                        session.link.stop()  # pause-and-train: the car waits, stopped, while the agent learns
-                        if rb.size >= max(hp.learning_starts, hp.batch_size):
-                            losses = None
-                            for _ in range(args.gradient_steps):
-                                session.check_gamepad()  # an e-stop tapped during the pause still ends the run
-                                if session.stop_requested:
-                                    break
-                                losses = sac.update(rb.sample(hp.batch_size), counters["updates"])
-                                counters["updates"] += 1
-                            for name, value in (losses or {}).items():
-                                session.writer.add_scalar(f"losses/{name}", value.item(), step)
+                        optimise(step)
                     else:
                         acting.load_state_dict(sac.actor.state_dict())
                     checkpoint()
@@ -842,6 +846,8 @@ def train_holding(args: Train) -> dict:
         finished.set()
         if learner is not None:
             learner.join()
+        elif counters["step"] >= args.total_steps and not session.stop_requested:
+            optimise(counters["step"])  # the last steps are learnt from too: the authors' code optimised once more after its loop
         checkpoint()
     finally:
         finished.set()

@@ -75,7 +75,7 @@ def test_train_writes_a_checkpoint_and_resumes_from_it(tmp_path):
     with pytest.raises(SystemExit, match=f"is a jirl-car-training-v2 file, not a jirl-sac-checkpoint-v2 checkpoint; `train` keeps the policy of this training in {state}.actor.cleanrl_model$"):
         jetracer.run(jetracer.Run(checkpoint=str(state), steps=1, log_dir=str(tmp_path)))  # the training state, not the policy
     saved = torch.load(state, weights_only=True)
-    assert saved["counters"]["step"] == 100 and saved["counters"]["updates"] == 10
+    assert saved["counters"]["step"] == 100 and saved["counters"]["updates"] == 15  # pauses at 40 and 80, and after step 100
     size = len(saved["buffer"]["obs"])
     assert size == 100 - 1 + saved["counters"]["fabricated_transitions"]  # the last step's transition is not complete
     out = subprocess.run([sys.executable, "-m", "deploy.jetracer", "train", "--total-steps", "140", "--resume", *common],
@@ -84,6 +84,7 @@ def test_train_writes_a_checkpoint_and_resumes_from_it(tmp_path):
     assert "resumed at step 100" in out.stdout
     resumed = torch.load(state, weights_only=True)
     assert resumed["counters"]["step"] == 140 and len(resumed["buffer"]["obs"]) > size
+    assert resumed["counters"]["updates"] == 25  # the pause at 120 and the one after step 140; none again at 100
     written = state.read_bytes()
     out = subprocess.run([sys.executable, "-m", "deploy.jetracer", "train", "--total-steps", "140", "--resume", *common],
                          cwd=ROOT, capture_output=True, text=True, timeout=120)  # fmt: skip
