@@ -747,7 +747,7 @@ def train_holding(args: Train) -> dict:
     def optimise(step: int) -> None:
         """Pause-and-train: the car waits, stopped, for --gradient-steps updates."""
         session.link.stop()
-        if rb.size >= max(hp.learning_starts, hp.batch_size):
+        if learning(step, rb, hp):
             losses = None
             for _ in range(args.gradient_steps):
                 session.check_gamepad()  # an e-stop tapped during the pause still ends the run
@@ -861,13 +861,20 @@ def train_holding(args: Train) -> dict:
     return counters
 
 
+def learning(step: int, rb: jirl.ReplayBuffer, hp: jirl.Args) -> bool:
+    """Whether the agent learns at this step: from --jirl.learning-starts steps on, as in the script and the
+    authors' car code (not buffer rows, which fabricated transitions double), once a batch is stored."""
+    return step >= hp.learning_starts and rb.size >= hp.batch_size
+
+
 def background_learner(sac, rb, counters: dict, args: Train, lock: threading.Lock, finished: threading.Event) -> None:
     """Gradient steps while the car drives, keeping gradient_steps / train_every of them per env step.
     An update that raises ends the learner with the error in counters["learner_error"]; the loop then stops."""
     hp = args.jirl
     while not finished.is_set():
         with lock:
-            ready = rb.size >= max(hp.learning_starts, hp.batch_size) and counters["updates"] < counters["step"] * args.gradient_steps / args.train_every
+            step = counters["step"]
+            ready = learning(step, rb, hp) and counters["updates"] < step * args.gradient_steps / args.train_every
             if ready:
                 try:
                     sac.update(rb.sample(hp.batch_size), counters["updates"])

@@ -97,6 +97,22 @@ def test_train_writes_a_checkpoint_and_resumes_from_it(tmp_path):
     assert out.returncode != 0 and "not a readable training state" in out.stderr
 
 
+@pytest.mark.parametrize("learner", ["pause", "background"])
+def test_train_learns_from_learning_starts_steps_not_from_as_many_buffer_rows(tmp_path, monkeypatch, learner):
+    observed, first_update = [], []
+    real_observe, real_update = jetracer.CarSession.observe, jetracer.jirl.SoftActorCritic.update
+    monkeypatch.setattr(jetracer.CarSession, "observe", lambda self: observed.append(1) or real_observe(self))
+    monkeypatch.setattr(jetracer.jirl.SoftActorCritic, "update", lambda self, data, n: first_update.append(len(observed)) or real_update(self, data, n))
+    # the baseline keeps control, so every step also stores a fabricated transition: 30 rows by step 15
+    args = ["train", "--total-steps", "60", "--train-every", "20", "--gradient-steps", "2", "--learner", learner, "--jirl.learning-starts", "30",
+            "--jirl.batch-size", "16", "--jirl.hidden-size", "16", "--jirl.guidance-steps", "27000", "--checkpoint", str(tmp_path / "t.pt"),
+            "--log-dir", str(tmp_path)]  # fmt: skip
+    jetracer.main(args)
+    assert first_update and first_update[0] >= 30  # 30 steps driven (observed) before the first update
+    if learner == "pause":
+        assert len(first_update) == 4  # the pauses at 40 and after 60; none at 20, when the buffer held 30 rows
+
+
 def test_run_drives_a_checkpoint_trained_by_the_jirl_script(tmp_path):
     out = subprocess.run(
         [sys.executable, str(ROOT / "jirl_sac_continuous.py"), "--env-id", "JetRacerTrack-v0", "--total-timesteps", "150",
