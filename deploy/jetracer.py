@@ -162,7 +162,8 @@ class Train(Common):
     baseline_reward_per_step: float = 1.075
     """the baseline's measured reward per step (from `baseline`), for the unpaired regret estimate"""
     jirl: jirl.Args = field(default_factory=car_jirl_defaults)
-    """JIRL and SAC hyperparameters (see jirl_sac_continuous.py --help)"""
+    """JIRL and SAC hyperparameters (see jirl_sac_continuous.py --help); on the car --jirl.guidance-steps
+    defaults to half of --total-steps, not of --jirl.total-timesteps, and a --resume keeps the training's"""
 
     def rules(self) -> List[Tuple[str, bool, str]]:
         return [
