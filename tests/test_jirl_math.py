@@ -1,5 +1,6 @@
 """JIRL's gate (Alg. 3) and penalized reward (Alg. 2) against independent computations."""
 
+import decimal
 import math
 
 import numpy as np
@@ -120,6 +121,7 @@ def test_gate_window_restarts_at_a_switch_and_at_an_episode_start():
     gate.record(True)
     gate.new_episode()
     assert gate.decide(-4.0, 1.0, 1.0) is False and len(gate.log_probs) == 1
+    assert gate.record(False) is False  # the agent acted last in the episode before: no switch here
 
 
 def test_gate_never_acts_on_nan_and_handles_extremes():
@@ -136,6 +138,14 @@ def test_gate_never_acts_on_nan_and_handles_extremes():
     assert gate.log_rhos[-1] == pytest.approx(math.log(math.log1p(math.exp(-3.0))))
     assert jirl.log_positive_rho(-800.0) == pytest.approx(-800.0)  # no underflow to -inf
     assert jirl.log_positive_rho(1e6) == pytest.approx(math.log(1e6))
+
+
+def test_log_positive_rho_is_log_softplus_to_double_precision_over_its_whole_range():
+    """Against log(log(1 + e^rho)) in 200-digit decimals, through the change to rho itself below -30."""
+    for rho in [*np.linspace(-60.0, 60.0, 481), -300.0, -100.0, -30.5, -29.5, 100.0, 300.0]:
+        with decimal.localcontext(prec=200):
+            exact = float((1 + decimal.Decimal(float(rho)).exp()).ln().ln())
+        assert jirl.log_positive_rho(float(rho)) == pytest.approx(exact, rel=1e-12, abs=1e-12), rho
 
 
 rewards = st.floats(-100, 100, allow_nan=False)

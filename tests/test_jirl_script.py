@@ -68,6 +68,89 @@ def test_buffer_holds_real_fabricated_and_switch_penalty_transitions(tmp_path, m
     assert sum(g["rl_control"]) == 260 - baseline_steps
 
 
+ALTERNATING_ENV = '''
+import gymnasium as gym
+import numpy as np
+
+
+class Alternating(gym.Env):
+    """obs = (t, parity of the reset seed); every episode terminates after 5 steps."""
+
+    observation_space = gym.spaces.Box(0.0, 5.0, (2,), np.float32)
+    action_space = gym.spaces.Box(-2.0, 2.0, (1,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t, self.parity = 0, seed % 2
+        return np.array([self.t, self.parity], np.float32), {}
+
+    def step(self, action):
+        self.t += 1
+        return np.array([self.t, self.parity], np.float32), -1.0 - abs(float(action[0])), self.t == 5, False, {}
+
+
+gym.register("Alternating-v0", entry_point=Alternating)
+
+
+def every_other_step(obs):
+    """Intervenes where t + parity is odd: episodes alternate agent, baseline, ... and baseline, agent, ..."""
+    return np.array([1.0], np.float32) if (int(obs[0]) + int(obs[1])) % 2 else None
+'''
+
+
+def run_alternating(tmp_path, monkeypatch, *args: str) -> dict:
+    (tmp_path / "alternating.py").write_text(ALTERNATING_ENV)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.chdir(tmp_path)
+    argv = ["jirl_sac_continuous.py", "--env-id", "alternating:Alternating-v0", "--baseline", "alternating:every_other_step",
+            "--regret-estimator", "off", "--guidance-schedule", "geometric", "--learning-starts", "20", "--batch-size", "16",
+            "--hidden-size", "16", *args]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", argv)
+    return runpy.run_path(str(ROOT / "jirl_sac_continuous.py"), run_name="__main__")
+
+
+def test_transitions_end_with_their_episode(tmp_path, monkeypatch):
+    """Fabricated rows keep the real row's termination; neither a switch penalty nor a control switch
+    reaches across an episode's end; only fabricated and switch-penalty rows are marked as guidance."""
+    g = run_alternating(tmp_path, monkeypatch, "--intervention-mode", "--total-timesteps", "53")
+    rb, i = g["rb"], 0
+    steps, baseline_steps, penalties, switches, parities = 0, 0, 0, 0, set()
+    while i < rb.size:
+        obs, next_obs, terminated = rb.obs[i], rb.next_obs[i], rb.terminations[i, 0]
+        t, parity = int(obs[0]), int(obs[1])
+        parities.add((steps // 5, parity))
+        assert t == steps % 5 and terminated == (t == 4) and not rb.guidance[i]
+        switches += t > 0  # the pattern alternates within an episode
+        i += 1
+        if (t + parity) % 2:  # the baseline acted: its fabricated transition ends where the real one does
+            assert rb.guidance[i] and rb.terminations[i, 0] == terminated
+            np.testing.assert_array_equal(rb.obs[i], obs)
+            np.testing.assert_array_equal(rb.next_obs[i], next_obs)
+            i += 1
+            baseline_steps += 1
+            if t > 0:  # after an agent step of the same episode: the switch penalty
+                assert rb.guidance[i] and rb.rewards[i, 0] == -1.0 and rb.terminations[i, 0] == 0.0
+                np.testing.assert_array_equal(rb.obs[i], [t - 1, parity])
+                np.testing.assert_array_equal(rb.next_obs[i], obs)
+                i += 1
+                penalties += 1
+        steps += 1
+    assert {parity for _, parity in parities} == {0, 1}, "episodes of either pattern ran"
+    assert steps == 53 and i == rb.size == 53 + baseline_steps + penalties
+    assert g["fabricated_transitions"] == baseline_steps and g["control_switches"] == switches
+    assert rb.guidance[: rb.size].sum() == baseline_steps + penalties
+    assert g["args"].guidance_steps == 26, "unset: half of --total-timesteps"
+
+
+def test_a_step_without_a_baseline_action_breaks_the_gate_window(tmp_path, monkeypatch):
+    """With C = 0 the agent acts at every gated step, so no switch restarts the window: only the step
+    without a baseline action between two gated ones keeps the earlier one out of the product."""
+    g = run_alternating(tmp_path, monkeypatch, "--gate-c", "0", "--guidance-steps", "0", "--total-timesteps", "53")
+    # the last step, t = 2 of an episode with parity 1, is gated; t = 1 had no baseline action, t = 0 was gated
+    np.testing.assert_array_equal(g["obs"], [3, 1])
+    assert len(g["gate"].log_probs) == 1 and g["fabricated_transitions"] == 0
+
+
 def test_end_to_end_logs_gate_and_regret(tmp_path):
     args = ["--total-timesteps", "420", "--learning-starts", "150", "--guidance-steps", "300", "--guidance-schedule", "geometric", "--save-model",
             "--eval-episodes", "1", "--baseline-eval-episodes", "2", *TINY]  # fmt: skip
@@ -90,6 +173,24 @@ def test_end_to_end_logs_gate_and_regret(tmp_path):
     (checkpoint,) = run_dir.glob("*.cleanrl_model")
     sac = load_script("sac_continuous")
     assert sac.evaluate(str(checkpoint), "Pendulum-v1", 1, 1) == pytest.approx(logged["eval/episodic_return"], rel=1e-5)
+
+
+def test_an_episode_regret_goes_to_the_phase_of_the_rl_control_fraction_at_its_end(tmp_path):
+    """Table I's phases: 0-50 %, 50-<100 %, 100 % of the last --rl-control-window steps. C falls
+    linearly from an insurmountable 1e300 and reaches 0 at step 390: the baseline drives the first
+    episode alone (regret 0, paired) and the second until then; at the second's end (step 399) the agent
+    has acted in 10 of the last 20 steps, exactly 50 %."""
+    args = ["--total-timesteps", "400", "--learning-starts", "150", "--guidance-schedule", "linear", "--gate-c", "1e300",
+            "--guidance-steps", "390", "--rl-control-window", "20", "--baseline-eval-episodes", "1", *TINY]  # fmt: skip
+    out = run_script(ROOT / "jirl_sac_continuous.py", args, tmp_path)
+    assert out.returncode == 0, out.stderr
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    logged = scalars(run_dir)
+    first, second = logged["charts/baseline_regret"]  # cumulative, at the two episodes' ends
+    assert first == pytest.approx(0.0, abs=1e-6) and abs(second - first) > 1e-3
+    assert logged["phases/baseline_regret_0_50"] == [first, first]
+    assert logged["phases/baseline_regret_50_100"] == [0.0, pytest.approx(second - first)]
+    assert logged["phases/baseline_regret_100"] == [0.0, 0.0]
 
 
 def test_a_baseline_that_never_intervenes_leaves_the_agent_in_control(tmp_path, monkeypatch):
