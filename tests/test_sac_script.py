@@ -58,6 +58,16 @@ def test_truncated_transition_keeps_its_true_next_observation(tmp_path, monkeypa
     assert not np.allclose(rb.next_obs[last], rb.obs[last + 1])
 
 
+def test_actions_before_learning_starts_are_uniform_draws_of_the_seeded_generator(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["sac_continuous.py", "--total-timesteps", "120", "--learning-starts", "100", "--seed", "7", *TINY])
+    g = runpy.run_path(str(ROOT / "sac_continuous.py"), run_name="__main__")
+    rng = np.random.default_rng(7)
+    expected = np.stack([rng.uniform(-1.0, 1.0, size=1).astype(np.float32) for _ in range(100)])
+    np.testing.assert_array_equal(g["rb"].actions[:100], expected)
+    assert not np.array_equal(g["rb"].actions[100:120], np.stack([rng.uniform(-1.0, 1.0, size=1).astype(np.float32) for _ in range(20)]))
+
+
 def test_end_to_end_logs_saves_and_evaluates(tmp_path, sac):
     out = run_script(
         ROOT / "sac_continuous.py",
@@ -83,6 +93,21 @@ def test_end_to_end_logs_saves_and_evaluates(tmp_path, sac):
     (checkpoint,) = run_dir.glob("*.cleanrl_model")
     returns = sac.evaluate(str(checkpoint), "Pendulum-v1", episodes=2, seed=1)
     np.testing.assert_allclose(returns, logged["eval/episodic_return"], rtol=1e-5)  # deterministic policy
+    # the same evaluation written out: the saved weights' 2 tanh(mean) N m on gymnasium's own env, evaluation seeds
+    w = torch.load(checkpoint, weights_only=True)["actor"]
+    env, expected = gym.make("Pendulum-v1"), []
+    for i in range(2):
+        obs, _ = env.reset(seed=1 + 1_000_000 + i)
+        total, done = 0.0, False
+        while not done:
+            x = torch.as_tensor(obs, dtype=torch.float32)
+            for layer in ("fc1", "fc2"):
+                x = torch.relu(w[f"{layer}.weight"] @ x + w[f"{layer}.bias"])
+            torque = 2.0 * torch.tanh(w["fc_mean.weight"] @ x + w["fc_mean.bias"]).numpy()
+            obs, reward, terminated, truncated, _ = env.step(torque)
+            total, done = total + float(reward), terminated or truncated
+        expected.append(total)
+    np.testing.assert_allclose(returns, expected, rtol=1e-4)
 
 
 def test_checkpoint_round_trip_and_errors(tmp_path, sac):

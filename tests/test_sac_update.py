@@ -114,7 +114,7 @@ class ReferenceSAC:
         self.q_optimizer.zero_grad()
         (q1_loss + q2_loss).backward()
         self.q_optimizer.step()
-        losses = {"qf1_loss": q1_loss, "qf2_loss": q2_loss, "qf1_values": q1.mean()}
+        losses = {"qf1_loss": q1_loss, "qf2_loss": q2_loss, "qf_loss": (q1_loss + q2_loss) / 2.0, "qf1_values": q1.mean(), "qf2_values": q2.mean()}
         if step % args.policy_frequency == 0:
             for _ in range(args.policy_frequency):
                 pi, log_pi = reference_get_action(self.actor, obs)
@@ -206,3 +206,25 @@ def test_replay_buffer_sample_keeps_rows_together(script):
     torch.testing.assert_close(actions, (i / 100)[:, None].expand(-1, ACT_DIM))
     torch.testing.assert_close(next_obs, (i + 0.5)[:, None].expand(-1, OBS_DIM))
     torch.testing.assert_close(terminations[:, 0], (i % 2 == 0).float())
+
+
+def test_replay_buffer_overwrites_its_oldest_rows_once_full(script):
+    rb = script.ReplayBuffer(10, OBS_DIM, ACT_DIM, seed=0)
+    for i in range(23):
+        rb.add(np.full(OBS_DIM, i), np.full(ACT_DIM, i / 100), float(i), np.full(OBS_DIM, i + 0.5), False)
+    assert rb.size == 10 and rb.pos == 3
+    assert sorted(rb.rewards[:, 0].tolist()) == list(range(13, 23)), "rows 0-12 overwritten, oldest first"
+    _, _, rewards, _, _ = rb.sample(500)
+    assert set(rewards[:, 0].tolist()) == set(range(13, 23))
+
+
+def test_actor_log_std_spans_exactly_minus_5_to_2(script):
+    """CleanRL's bounds: tanh of the output layer mapped onto [LOG_STD_MIN, LOG_STD_MAX] = [-5, 2]."""
+    actor = script.Actor(OBS_DIM, ACT_DIM, WIDTH)
+    obs = torch.randn(8, OBS_DIM)
+    with torch.no_grad():
+        actor.fc_logstd.weight.zero_()
+        for bias, expected in ((50.0, 2.0), (0.0, -1.5), (-50.0, -5.0), (math.atanh(0.5), 0.25)):
+            actor.fc_logstd.bias.fill_(bias)
+            _, log_std = actor(obs)
+            torch.testing.assert_close(log_std, torch.full((8, ACT_DIM), expected))
