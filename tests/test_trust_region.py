@@ -1,7 +1,9 @@
 """ppo_il.py and trpo_il.py: TRPO's mathematics, the imitation phase, and short end-to-end runs."""
 
 import os
+import runpy
 import shutil
+import sys
 
 import numpy as np
 import pytest
@@ -316,3 +318,31 @@ def test_unset_ppo_minibatches_hold_64_steps_of_the_rollout_the_user_set():
     assert ppo.resolve_hyperparameters(ppo.Args(num_steps=256)).num_minibatches == 4
     assert ppo.resolve_hyperparameters(ppo.Args(num_steps=100)).num_minibatches == 1
     assert ppo.resolve_hyperparameters(ppo.Args(num_steps=256, num_minibatches=8)).num_minibatches == 8
+
+
+@pytest.mark.parametrize("num_steps, ends_at", [(256, [399 - 256]), (300, [399 - 300, 599 - 300])])
+@pytest.mark.parametrize("name", ["ppo_il", "trpo_il"])
+def test_the_last_rollouts_advantages_are_gae_summed_up_to_each_episode_end(name, num_steps, ends_at, tmp_path, monkeypatch):
+    """A_t = sum_k (gamma lambda)^k delta_{t+k}, stopping at the end of s_t's episode, written as that sum
+    rather than the scripts' backward recursion; the value targets are A + V. Of two rollouts, the second
+    holds the end of Pendulum-v1's second episode (step 400) and ends mid-episode (256 steps, bootstrapped
+    from V) or with the third episode (300 steps)."""
+    monkeypatch.chdir(tmp_path)
+    argv = [f"{name}.py", *SHORT[name], "--num-steps", str(num_steps), "--total-timesteps", str(2 * num_steps), "--il-steps", "200", "--il-max-epochs", "5",
+            "--hidden-size", "16", "--baseline-eval-episodes", "1", "--gae-lambda", "0.9"]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", argv)
+    g = runpy.run_path(str(ROOT / f"{name}.py"), run_name="__main__")
+    gamma, lam = g["args"].gamma, 0.9
+    rewards, values, dones = (g[key].numpy().astype(np.float64) for key in ("rewards", "values", "dones"))
+    next_values = np.append(values[1:], float(g["next_value"]))
+    ends = np.append(dones[1:], float(g["next_done"])) == 1.0  # s_{t+1} starts a new episode: s_t's ended
+    assert ends.nonzero()[0].tolist() == ends_at
+    deltas = rewards + gamma * next_values * ~ends - values
+    expected = np.zeros(len(rewards))
+    for t in range(len(rewards)):
+        for k in range(len(rewards) - t):
+            expected[t] += (gamma * lam) ** k * deltas[t + k]
+            if ends[t + k]:
+                break
+    np.testing.assert_allclose(g["advantages"].numpy(), expected, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(g["returns"].numpy(), expected + values, rtol=1e-4, atol=1e-4)
