@@ -107,6 +107,7 @@ def test_end_to_end_logs_saves_and_evaluates(tmp_path, sac):
             obs, reward, terminated, truncated, _ = env.step(torque)
             total, done = total + float(reward), terminated or truncated
         expected.append(total)
+    env.close()
     np.testing.assert_allclose(returns, expected, rtol=1e-4)
 
 

@@ -213,7 +213,7 @@ def test_replay_buffer_overwrites_its_oldest_rows_once_full(script):
     for i in range(23):
         rb.add(np.full(OBS_DIM, i), np.full(ACT_DIM, i / 100), float(i), np.full(OBS_DIM, i + 0.5), False)
     assert rb.size == 10 and rb.pos == 3
-    assert sorted(rb.rewards[:, 0].tolist()) == list(range(13, 23)), "rows 0-12 overwritten, oldest first"
+    assert rb.rewards[:, 0].tolist() == [20, 21, 22, *range(13, 20)], "rows 0-12 overwritten in order, from the start"
     _, _, rewards, _, _ = rb.sample(500)
     assert set(rewards[:, 0].tolist()) == set(range(13, 23))
 
