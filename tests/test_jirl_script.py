@@ -99,6 +99,8 @@ def every_other_step(obs):
 
 
 def run_alternating(tmp_path, monkeypatch, *args: str) -> dict:
+    """JIRL on the alternating env, in process. A baseline that only intervenes cannot be measured, so
+    neither the regret nor the earned schedule (which compares returns with the baseline's) can run."""
     (tmp_path / "alternating.py").write_text(ALTERNATING_ENV)
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.chdir(tmp_path)
