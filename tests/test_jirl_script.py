@@ -8,8 +8,10 @@ import sys
 import numpy as np
 import pytest
 import torch
+from scipy import stats
 
 from conftest import ROOT, load_script
+from envs.pendulum import pendulum_swing_up
 from test_sac_script import TINY, run_script, scalars
 
 jirl = load_script("jirl_sac_continuous")
@@ -175,6 +177,37 @@ def test_end_to_end_logs_gate_and_regret(tmp_path):
     (checkpoint,) = run_dir.glob("*.cleanrl_model")
     sac = load_script("sac_continuous")
     assert sac.evaluate(str(checkpoint), "Pendulum-v1", 1, 1) == pytest.approx(logged["eval/episodic_return"], rel=1e-5)
+
+
+def test_gate_charts_are_the_means_of_the_gates_terms_since_the_last_log(tmp_path, monkeypatch):
+    """gate/log_prob_baseline and gate/log_rho: the means, over the steps since the last log, of
+    log pi(a^b|s) and log softplus(rho), recomputed here with scipy from the states the buffer stored.
+    The agent never updates (--learning-starts = the total), so the actor the run leaves is the one
+    that was asked at every step."""
+    monkeypatch.chdir(tmp_path)
+    argv = ["jirl_sac_continuous.py", "--total-timesteps", "260", "--learning-starts", "260", "--regret-estimator", "off",
+            "--baseline-eval-episodes", "1", *TINY]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", argv)
+    g = runpy.run_path(str(ROOT / "jirl_sac_continuous.py"), run_name="__main__")
+    rb = g["rb"]
+    states = rb.obs[: rb.size][~rb.guidance[: rb.size]]  # the real rows: one per step, in order
+    assert len(states) == 260
+    with torch.no_grad():
+        mean, log_std = (t.double().numpy() for t in g["actor"](torch.from_numpy(states)))
+    edge = 1 - jirl.BASELINE_ACTION_EPS
+    log_probs, log_rhos = [], []
+    for s, m, ls in zip(states, mean, log_std):
+        b = pendulum_swing_up(s.astype(np.float64)) / 2.0  # policy units
+        y = np.clip(b, -edge, edge)
+        log_probs.append(np.sum(stats.norm.logpdf(np.arctanh(y), m, np.exp(ls)) - np.log(1 - y**2)))
+        entropy = np.sum(stats.norm(m, np.exp(ls)).entropy() + np.log(1 - np.tanh(m) ** 2))
+        rho = entropy + np.linalg.norm(b - np.tanh(m))
+        log_rhos.append(np.log(np.log1p(np.exp(rho))))
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    logged = scalars(run_dir)
+    windows = [slice(0, 51), slice(51, 101), slice(101, 151), slice(151, 201), slice(201, 251)]  # logs at steps 50, ..., 250
+    np.testing.assert_allclose(logged["gate/log_prob_baseline"], [np.mean(log_probs[w]) for w in windows], rtol=1e-5)
+    np.testing.assert_allclose(logged["gate/log_rho"], [np.mean(log_rhos[w]) for w in windows], rtol=1e-5)
 
 
 def test_an_episode_regret_goes_to_the_phase_of_the_rl_control_fraction_at_its_end(tmp_path):
