@@ -737,7 +737,8 @@ def train_holding(args: Train) -> dict:
     if session.world is not None:
         shadow = SimWorld(_NullController(), seed=args.seed)
         shadow_follower, shadow_previous = LaneFollower(), np.array(START_ACTION, dtype=np.float32)
-    previous: Optional[tuple] = None  # (obs, stored action, rl_action, rl_acted)
+        shadow_safety = SafetyFilter(session.mapping, args.max_steering_rate, session.period)  # the car's filter acts on the baseline too
+    previous: Optional[tuple] = None  # (obs, stored action, rl_action, rl_acted, throttle, baseline action, twin's reward)
     obs = None
     lock = threading.Lock()  # the background learner's updates against the loop's buffer writes
     acting = copy.deepcopy(sac.actor) if args.learner == "background" else sac.actor
@@ -789,9 +790,11 @@ def train_holding(args: Train) -> dict:
                 continue
             off_track = session.world is not None and session.world.off_track
             if previous is not None:  # the transition of the previous step is complete now
-                p_obs, p_action, p_rl_action, p_rl_acted, p_throttle, p_baseline = previous
+                p_obs, p_action, p_rl_action, p_rl_acted, p_throttle, p_baseline, p_twin_reward = previous
                 reward = car_reward(p_throttle, off_track, session.mapping)
                 counters["baseline_regret_per_step"] += max(0.0, args.baseline_reward_per_step - reward)
+                if p_twin_reward is not None:  # paired: the twin's reward for this same step, so that a departure meets a departure
+                    counters["paired_regret_per_step"] += max(0.0, p_twin_reward - reward)
                 with lock:
                     rb.add(p_obs, p_action, reward, next_obs, off_track)
                     if not p_rl_acted and p_baseline is not None:
@@ -823,21 +826,27 @@ def train_holding(args: Train) -> dict:
             counters["control_switches"] += gate.record(rl_acts)
             rl_control.append(rl_acts)
             action = rl_action if rl_acts else np.asarray(baseline_action, dtype=np.float32)
+            car_steering = session.safety.steering  # the wheel as this step found it
             commands = session.act(action)
             if session.stop_requested:  # e-stopped or disarmed in this period: the car did not take the action
                 break
-            previous = (obs, action, rl_action, rl_acts, commands[1] if commands else 0.0, None if rl_acts else baseline_action)
 
+            twin_reward = None
             if shadow is not None:  # the baseline's own step from the same start, paired by index
-                if off_track:
+                if off_track:  # the car was put back: the twin starts from its pose, wheel and previous action
                     shadow.env.reset(seed=session.world.seed + session.world.resets)
                     shadow_follower.reset()
-                shadow_previous = shadow_follower(preprocess(shadow.read()[0], shadow_previous))
-                shadow_commands = action_to_commands(shadow_previous, session.mapping)
+                    shadow_previous, shadow_safety.steering = np.array(START_ACTION, dtype=np.float32), car_steering
+                shadow_action = shadow_follower(preprocess(shadow.read()[0], shadow_previous))
+                shadow_commands = shadow_safety(shadow_action)
                 shadow.controller.set(*shadow_commands)
                 shadow.tick()
-                counters["paired_regret_per_step"] += max(0.0, car_reward(shadow_commands[1], shadow.off_track, session.mapping)
-                                                         - car_reward(commands[1] if commands else 0.0, off_track, session.mapping))  # fmt: skip
+                twin_reward = car_reward(shadow_commands[1], shadow.off_track, session.mapping)
+                shadow_previous = np.clip(shadow_action, -1.0, 1.0)
+                if shadow.off_track:  # the twin left the lane on its own and was put back, as the car would be
+                    shadow_follower.reset()
+                    shadow_previous = np.array(START_ACTION, dtype=np.float32)
+            previous = (obs, action, rl_action, rl_acts, commands[1] if commands else 0.0, None if rl_acts else baseline_action, twin_reward)
             counters["step"] += 1
             if step % hp.log_every == 0:
                 session.log(step)
@@ -889,13 +898,14 @@ def background_learner(sac, rb, counters: dict, args: Train, lock: threading.Loc
 
 
 class _NullController:
-    """Stands in for a motor controller in the shadow simulator: it applies what it is told."""
+    """Stands in for a motor controller in the shadow simulator: it applies what it is told, in the
+    protocol's thousandths, as the car's controller receives it."""
 
     steering = 0.0
     throttle = 0.0
 
     def set(self, steering: float, throttle: float) -> None:
-        self.steering, self.throttle = steering, throttle
+        self.steering, self.throttle = p.to_thousandths(steering) / 1000.0, p.to_thousandths(throttle) / 1000.0
 
 
 def main(argv: Optional[List[str]] = None) -> None:

@@ -1,5 +1,6 @@
 """deploy/jetracer.py: safety, and the run, baseline and train modes headless against the simulated car."""
 
+import copy
 import errno
 import os
 import re
@@ -20,6 +21,9 @@ jetracer = pytest.importorskip("deploy.jetracer")
 from envs.car_interface import ActionMapping  # noqa: E402
 
 FAST = ["--jirl.hidden-size", "16", "--jirl.batch-size", "16", "--jirl.learning-starts", "30"]
+# the mock controller's longest watchdog: a test that checks no watchdog need not fail where a loaded machine starves the link's
+# send thread for the default 250 ms
+PATIENT = ["--watchdog-ms", "2000"]
 
 
 def test_safety_filter_stops_on_nan_clamps_and_rate_limits():
@@ -113,6 +117,186 @@ def test_train_learns_from_learning_starts_steps_not_from_as_many_buffer_rows(tm
         assert len(first_update) == 4  # the pauses at 40 and after 60; none at 20, when the buffer held 30 rows
 
 
+def test_train_stores_each_step_as_the_script_does_and_counts_its_regret(tmp_path, monkeypatch):
+    """The car's Alg. 1, row by row against what the car was seen to do: a real transition per step
+    (reward 1 + 0.1 throttle / max throttle, -10 and terminal where the step left the lane); after a
+    baseline step its fabricated transition with the penalized reward; after an agent step that the
+    baseline took over from, the switch penalty. Both regret estimates are summed again here from the rows
+    and from the twin car's own steps; after each lane departure the twin starts from the car's pose,
+    previous action and wheel. C falls to 0 at step 60. A person takes over at step 100 and steers hard
+    left at full throttle until the car leaves the lane after step 105, the wheel at full left by then:
+    the agent takes control back at the next episode's start, which is no control switch. A second
+    takeover, at steps 140-142, is an ordinary pair of switches."""
+    steps, twin, observations, result = [], [], [], []
+    real_observe, real_act, real_record, real_tick, real_train, real_preprocess = (
+        jetracer.CarSession.observe, jetracer.CarSession.act, jetracer.jirl.Gate.record, jetracer.SimWorld.tick, jetracer.train,
+        jetracer.preprocess)  # fmt: skip
+
+    def observe(self):
+        obs = real_observe(self)
+        steps.append({"obs": obs, "off": self.world.off_track})
+        return obs
+
+    def act(self, action):
+        commands = real_act(self, action)
+        steps[-1].update(action=np.array(action, np.float32), commands=commands)
+        return commands
+
+    def record(self, rl_acts):
+        steps[-1]["rl"] = rl_acts
+        return real_record(self, rl_acts)
+
+    def tick(self):  # the twin's world: its commands and whether it left the lane, step by step
+        progress = real_tick(self)
+        if isinstance(self.controller, jetracer._NullController):
+            twin.append((self.controller.steering, self.controller.throttle, self.off_track))
+        return progress
+
+    def preprocess(frame, previous_action):  # called by the car's observe, then for the twin, at every step
+        observations.append(real_preprocess(frame, previous_action))
+        return observations[-1]
+
+    def human_action(self):  # hard left at full throttle from step 100 until the car leaves the lane after 105; again at 140-142
+        t = len(steps) - 1
+        if 100 <= t and not any(step["off"] for step in steps[105:]):
+            return np.array([1.0, 1.0], np.float32)
+        return np.array([0.0, -1.0], np.float32) if 140 <= t < 143 else None
+
+    monkeypatch.setattr(jetracer.CarSession, "observe", observe)
+    monkeypatch.setattr(jetracer.CarSession, "act", act)
+    monkeypatch.setattr(jetracer.jirl.Gate, "record", record)
+    monkeypatch.setattr(jetracer.SimWorld, "tick", tick)
+    monkeypatch.setattr(jetracer.CarSession, "human_action", human_action)
+    monkeypatch.setattr(jetracer, "train", lambda args: result.append(real_train(args)))
+    monkeypatch.setattr(jetracer, "preprocess", preprocess)
+    state = tmp_path / "t.pt"
+    jetracer.main(["train", "--total-steps", "160", "--train-every", "40", "--gradient-steps", "2", "--jirl.guidance-steps", "60", "--jirl.rl-control-window", "100",
+                   "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST, *PATIENT])  # fmt: skip
+    rows = {name: value.numpy() for name, value in torch.load(state, weights_only=True)["buffer"].items()}
+    (counters,) = result
+    assert len(steps) == len(twin) == 160 and all(step["commands"] is not None for step in steps)
+    i, regret, paired, switches = 0, 0.0, 0.0, 0
+    for t in range(159):  # the last step's transition is never complete
+        now, after = steps[t], steps[t + 1]
+        previous_action = jetracer.START_ACTION if t == 0 or now["off"] else np.clip(steps[t - 1]["action"], -1.0, 1.0)
+        np.testing.assert_array_equal(now["obs"][-2:], np.float32(previous_action))  # the observation ends with the last action
+        reward = -10.0 if after["off"] else 1.0 + 0.1 * now["commands"][1] / 0.6
+        np.testing.assert_array_equal(rows["obs"][i], now["obs"])
+        np.testing.assert_array_equal(rows["actions"][i], now["action"])
+        np.testing.assert_array_equal(rows["next_obs"][i], after["obs"])
+        assert rows["rewards"][i, 0] == pytest.approx(reward) and rows["terminations"][i, 0] == after["off"]
+        i += 1
+        if not now["rl"]:  # Alg. 1, line 9: the fabricated transition (s, a^rl, r^p, s')
+            rl_action = rows["actions"][i]
+            assert not np.array_equal(rl_action, now["action"])
+            np.testing.assert_array_equal(rows["obs"][i], now["obs"])
+            np.testing.assert_array_equal(rows["next_obs"][i], after["obs"])
+            distance = np.linalg.norm(now["action"].astype(np.float64) - rl_action)
+            assert rows["rewards"][i, 0] == pytest.approx(reward - abs(reward) * (1 - np.exp(-distance / 0.01)), abs=1e-5)
+            assert rows["terminations"][i, 0] == after["off"]
+            i += 1
+        elif not after["rl"] and not after["off"]:  # Sec. V.A: the agent's step that the baseline took over from
+            np.testing.assert_array_equal(rows["obs"][i], now["obs"])
+            np.testing.assert_array_equal(rows["actions"][i], now["action"])
+            np.testing.assert_array_equal(rows["next_obs"][i], after["obs"])
+            assert rows["rewards"][i, 0] == -1.0 and rows["terminations"][i, 0] == 0.0
+            i += 1
+        switches += now["rl"] != after["rl"] and not after["off"]  # a lane departure starts a new episode
+        regret += max(0.0, 1.075 - reward)
+        _, twin_throttle, twin_off = twin[t]
+        paired += max(0.0, (-10.0 if twin_off else 1.0 + 0.1 * twin_throttle / 0.6) - reward)
+    assert i == len(rows["obs"])
+    rl = [step["rl"] for step in steps]
+    departure = next(t for t in range(105, 160) if steps[t]["off"])  # under the baseline
+    assert len(observations) == 320
+    for t in [0] + [t for t in range(160) if steps[t]["off"]]:  # the twin starts where the car starts
+        np.testing.assert_array_equal(observations[2 * t + 1], observations[2 * t], err_msg=f"step {t}")
+    wheel = steps[departure - 1]["commands"][0]  # hard left: the twin's own wheel followed the lane
+    assert wheel == 1.0 and abs(twin[departure][0] - wheel) <= 0.4 + 1e-3  # the safety filter's 8/s at 20 Hz, from the car's wheel
+    assert not any(rl[:60]) and not any(rl[100:departure]) and rl[departure] and not any(rl[140:143]) and all(rl[143:])
+    assert counters["control_switches"] == switches
+    assert counters["fabricated_transitions"] == 159 - sum(rl[:159])
+    assert counters["baseline_regret_per_step"] == pytest.approx(regret) and regret > 0.0
+    assert counters["paired_regret_per_step"] == pytest.approx(paired)
+    assert counters["rl_control_fraction"] == pytest.approx(sum(rl[-100:]) / 100)
+
+
+def test_a_car_that_drives_as_its_baseline_twin_has_no_paired_regret(tmp_path, monkeypatch):
+    """Sim-in-the-loop pairs each step with the baseline's own step from the same pose (a twin car). A car
+    the baseline keeps driving (C = 1e300) is that twin, lane departures included: the same pose after
+    every step, the same observation at every step, paired regret 0, while the unpaired estimate charges
+    each departure. The baseline is scripted to steer left at full throttle, so that it leaves the lane
+    again and again, by 0.77777: a command the protocol rounds. No pause (--train-every past the end)
+    stops the car mid-run."""
+    monkeypatch.setattr(jetracer.LaneFollower, "__call__", lambda self, obs: np.array([0.77777, 1.0], np.float32))
+    real_observe, real_tick, real_preprocess = jetracer.CarSession.observe, jetracer.SimWorld.tick, jetracer.preprocess
+    poses, observations = {"car": [], "twin": []}, []
+
+    def observe(self):  # the world moves on once the last command has reached the controller, as within a period on the car
+        command, controller = self.link._command, self.link._port.controller
+        if command is not None:
+            sent = [jetracer.p.to_thousandths(value) / 1000.0 for value in command[:2]]
+            deadline = time.monotonic() + 5.0
+            while [controller.steering, controller.throttle] != sent and time.monotonic() < deadline:
+                time.sleep(0.001)
+        return real_observe(self)
+
+    def tick(self):
+        progress = real_tick(self)
+        poses["twin" if isinstance(self.controller, jetracer._NullController) else "car"].append(tuple(self.env._state))
+        return progress
+
+    def preprocess(frame, previous_action):  # called by the car's observe, then for the twin, at every step
+        observations.append(real_preprocess(frame, previous_action))
+        return observations[-1]
+
+    monkeypatch.setattr(jetracer.CarSession, "observe", observe)
+    monkeypatch.setattr(jetracer.SimWorld, "tick", tick)
+    monkeypatch.setattr(jetracer, "preprocess", preprocess)
+    state = tmp_path / "t.pt"
+    jetracer.main(["train", "--total-steps", "100", "--train-every", "1000", "--gradient-steps", "1", "--jirl.gate-c", "1e300", "--jirl.guidance-steps", "0",
+                   "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST, *PATIENT])  # fmt: skip
+    saved = torch.load(state, weights_only=True)
+    counters, rewards = saved["counters"], saved["buffer"]["rewards"][:, 0].numpy()
+    departures = int(np.sum(rewards == -10.0))
+    assert departures >= 2 and counters["control_switches"] == 0
+    # the car's world ticks as each step observes, so its tick t + 1 applies the command of step t; its first is at rest
+    assert len(poses["car"]) == len(poses["twin"]) == 100 and poses["car"][1:] == poses["twin"][:-1]
+    assert len(observations) == 200
+    for t in range(100):
+        np.testing.assert_array_equal(observations[2 * t + 1], observations[2 * t], err_msg=f"step {t}")
+    assert counters["baseline_regret_per_step"] == pytest.approx(departures * (1.075 + 10.0))  # full throttle earns 1.1 > 1.075
+    assert counters["paired_regret_per_step"] == 0.0
+
+
+def test_a_twin_that_leaves_the_lane_alone_is_put_back_at_rest(tmp_path, monkeypatch):
+    """The twin is put back as the car would be: after a lane departure of its own (the baseline steers
+    hard left; the agent drives the car, C = 0) its next observation ends with the action at rest."""
+    monkeypatch.setattr(jetracer.LaneFollower, "__call__", lambda self, obs: np.array([1.0, 1.0], np.float32))
+    real_tick, real_preprocess, real_observe = jetracer.SimWorld.tick, jetracer.preprocess, jetracer.CarSession.observe
+    twin_off, car_off, observations = [], [], []
+
+    def tick(self):
+        progress = real_tick(self)
+        if isinstance(self.controller, jetracer._NullController):
+            twin_off.append(self.off_track)
+        return progress
+
+    def preprocess(frame, previous_action):  # called by the car's observe, then for the twin, at every step
+        observations.append(real_preprocess(frame, previous_action))
+        return observations[-1]
+
+    monkeypatch.setattr(jetracer.SimWorld, "tick", tick)
+    monkeypatch.setattr(jetracer, "preprocess", preprocess)
+    monkeypatch.setattr(jetracer.CarSession, "observe", lambda self: car_off.append(self.world.off_track) or real_observe(self))
+    jetracer.main(["train", "--total-steps", "60", "--train-every", "1000", "--gradient-steps", "1", "--jirl.gate-c", "0", "--jirl.guidance-steps", "0",
+                   "--checkpoint", str(tmp_path / "t.pt"), "--log-dir", str(tmp_path), *FAST, *PATIENT])  # fmt: skip
+    alone = [t for t in range(59) if twin_off[t] and not car_off[t + 1]]  # the car stayed in the lane
+    assert alone
+    for t in alone:
+        np.testing.assert_array_equal(observations[2 * (t + 1) + 1][-2:], np.float32(jetracer.START_ACTION))
+
+
 def test_run_drives_a_checkpoint_trained_by_the_jirl_script(tmp_path):
     out = subprocess.run(
         [sys.executable, str(ROOT / "jirl_sac_continuous.py"), "--env-id", "JetRacerTrack-v0", "--total-timesteps", "150",
@@ -149,6 +333,27 @@ def test_background_learner_keeps_the_gradient_step_ratio(tmp_path):
     )  # fmt: skip
     assert out.returncode == 0, out.stderr
     assert ", updates 25," in out.stdout  # 100 steps x 10 / 40, trained while driving
+
+
+def test_the_background_learner_refreshes_the_actor_the_car_acts_with_at_every_pause(tmp_path, monkeypatch):
+    """With --learner background the car acts with a copy of the actor, refreshed at each --train-every
+    step: between two refreshes every action is the mean (C = 0 and the mean after guidance) of the actor
+    that the checkpoint at the first of them saved."""
+    observed, applied, saved = [], [], []
+    real_observe, real_act, real_save = jetracer.CarSession.observe, jetracer.CarSession.act, jetracer.save_training_state
+    monkeypatch.setattr(jetracer.CarSession, "observe", lambda self: observed.append(real_observe(self)) or observed[-1])
+    monkeypatch.setattr(jetracer.CarSession, "act", lambda self, action: applied.append((observed[-1], action)) or real_act(self, action))
+    monkeypatch.setattr(jetracer, "save_training_state", lambda path, sac, *rest: saved.append((len(observed), copy.deepcopy(sac.actor))) or real_save(path, sac, *rest))
+    jetracer.main(["train", "--total-steps", "120", "--train-every", "40", "--gradient-steps", "10", "--learner", "background",
+                   "--jirl.gate-c", "0", "--jirl.guidance-steps", "0", "--jirl.deterministic-after-guidance",
+                   "--checkpoint", str(tmp_path / "t.pt"), "--log-dir", str(tmp_path), *FAST, *PATIENT])  # fmt: skip
+    assert [step for step, _ in saved] == [0, 40, 80, 120]  # the first checkpoint before the car is armed, the last after the run
+    for (start, actor), end in zip(saved, (40, 80, 120)):
+        obs, actions = (np.stack(values) for values in zip(*applied[start:end]))
+        with torch.no_grad():
+            np.testing.assert_allclose(actions, torch.tanh(actor(torch.from_numpy(obs))[0]).numpy(), atol=1e-6, err_msg=f"steps {start}-{end}")
+    first, last = (torch.nn.utils.parameters_to_vector(actor.parameters()) for _, actor in (saved[0], saved[2]))
+    assert not torch.equal(first, last), "the learner trained while the car drove"
 
 
 def fifo_gamepad(tmp_path, monkeypatch) -> str:
@@ -487,11 +692,13 @@ def test_the_e_stop_is_read_while_the_frames_are_stale(tmp_path, monkeypatch, ca
 
 def test_a_stale_frame_ends_the_training_episode_for_the_baseline_too(tmp_path, monkeypatch):
     stale_camera(monkeypatch, lambda n: 21 <= n <= 23)  # three stale periods
-    resets = []
+    resets, new_episodes, real_new_episode = [], [], jetracer.jirl.Gate.new_episode
     monkeypatch.setattr(jetracer.LaneFollower, "reset", lambda self: resets.append(1) or setattr(self, "previous_error", None))
+    monkeypatch.setattr(jetracer.jirl.Gate, "new_episode", lambda self: new_episodes.append(1) or real_new_episode(self))
     guided = ["--jirl.guidance-steps", "27000"]  # the baseline keeps control: no lane departure starts an episode
     jetracer.main(["train", "--total-steps", "60", "--checkpoint", str(tmp_path / "t.pt"), "--log-dir", str(tmp_path), *FAST, *guided])
     assert len(resets) == 3  # its steering derivative does not span the gap (the car never left the lane here)
+    assert len(new_episodes) == 3  # nor does the gate's window
 
 
 def test_a_failing_background_learner_stops_the_car_and_keeps_the_state(tmp_path, monkeypatch, capsys):
@@ -660,8 +867,10 @@ def test_train_refuses_jirl_options_that_the_car_does_not_use(tmp_path, options,
 @pytest.mark.parametrize("deterministic", [False, True])
 def test_train_acts_with_the_mean_after_guidance_when_asked(tmp_path, monkeypatch, deterministic):
     observed, applied, logged = [], [], []
-    real_observe, real_act = jetracer.CarSession.observe, jetracer.CarSession.act
+    real_observe, real_act, real_decide = jetracer.CarSession.observe, jetracer.CarSession.act, jetracer.jirl.Gate.decide
     monkeypatch.setattr(jetracer.CarSession, "observe", lambda self: observed.append(real_observe(self)) or observed[-1])
+    # the agent also acts at steps 30-39, while C > 0: there it samples, flag or not
+    monkeypatch.setattr(jetracer.jirl.Gate, "decide", lambda self, *terms: real_decide(self, *terms) or 30 <= len(observed) - 1 < 40)
     monkeypatch.setattr(jetracer.CarSession, "act", lambda self, action: applied.append((observed[-1], action)) or real_act(self, action))
     monkeypatch.setattr(jetracer.CarSession, "log", lambda self, step: logged.append(step))
     args = ["train", "--total-steps", "120", "--jirl.guidance-steps", "60", "--jirl.learning-starts", "1000", "--jirl.hidden-size", "16",
@@ -671,11 +880,11 @@ def test_train_acts_with_the_mean_after_guidance_when_asked(tmp_path, monkeypatc
     hp.hidden_size = 16
     torch.manual_seed(0)  # train's --seed: no update ran, so the agent is the one it started with
     actor = jetracer.jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, hp).actor
-    after = applied[60:]  # C = 0 from step 60: the agent acts at every step
-    with torch.no_grad():
-        means = torch.tanh(actor(torch.from_numpy(np.stack([obs for obs, _ in after])))[0]).numpy()
-    actions = np.stack([action for _, action in after])
-    assert np.allclose(actions, means, atol=1e-6) == deterministic  # else sampled around the mean
+    for steps, mean_applied in ((slice(60, 120), deterministic), (slice(30, 40), False)):  # C = 0 from step 60: the agent acts at every step
+        with torch.no_grad():
+            means = torch.tanh(actor(torch.from_numpy(np.stack([obs for obs, _ in applied[steps]])))[0]).numpy()
+        actions = np.stack([action for _, action in applied[steps]])
+        assert np.isclose(actions, means, atol=1e-6).all(1).tolist() == [mean_applied] * len(actions)  # else sampled around the mean
     assert [step for step in logged if step < 120] == [0, 25, 50, 75, 100]  # --jirl.log-every is the car's too
 
 
