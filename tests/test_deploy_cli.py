@@ -117,6 +117,27 @@ def test_train_learns_from_learning_starts_steps_not_from_as_many_buffer_rows(tm
         assert len(first_update) == 4  # the pauses at 40 and after 60; none at 20, when the buffer held 30 rows
 
 
+def record_the_worlds(monkeypatch) -> tuple:
+    """From here on, every observation `preprocess` makes (at each step the car's, then the twin's) and,
+    for the car's and the twin's world, (steering, throttle, off track, pose) after each tick."""
+    real_tick, real_preprocess = jetracer.SimWorld.tick, jetracer.preprocess
+    observations, ticks = [], {"car": [], "twin": []}
+
+    def tick(self):
+        progress = real_tick(self)
+        world = "twin" if isinstance(self.controller, jetracer._NullController) else "car"
+        ticks[world].append((self.controller.steering, self.controller.throttle, self.off_track, tuple(self.env._state)))
+        return progress
+
+    def preprocess(frame, previous_action):
+        observations.append(real_preprocess(frame, previous_action))
+        return observations[-1]
+
+    monkeypatch.setattr(jetracer.SimWorld, "tick", tick)
+    monkeypatch.setattr(jetracer, "preprocess", preprocess)
+    return observations, ticks
+
+
 def test_train_stores_each_step_as_the_script_does_and_counts_its_regret(tmp_path, monkeypatch):
     """The car's Alg. 1, row by row against what the car was seen to do: a real transition per step
     (reward 1 + 0.1 throttle / max throttle, -10 and terminal where the step left the lane); after a
@@ -127,10 +148,10 @@ def test_train_stores_each_step_as_the_script_does_and_counts_its_regret(tmp_pat
     left at full throttle until the car leaves the lane after step 105, the wheel at full left by then:
     the agent takes control back at the next episode's start, which is no control switch. A second
     takeover, at steps 140-142, is an ordinary pair of switches."""
-    steps, twin, observations, result = [], [], [], []
-    real_observe, real_act, real_record, real_tick, real_train, real_preprocess = (
-        jetracer.CarSession.observe, jetracer.CarSession.act, jetracer.jirl.Gate.record, jetracer.SimWorld.tick, jetracer.train,
-        jetracer.preprocess)  # fmt: skip
+    steps, result = [], []
+    real_observe, real_act, real_record, real_train = jetracer.CarSession.observe, jetracer.CarSession.act, jetracer.jirl.Gate.record, jetracer.train
+    observations, ticks = record_the_worlds(monkeypatch)
+    twin = ticks["twin"]
 
     def observe(self):
         obs = real_observe(self)
@@ -146,16 +167,6 @@ def test_train_stores_each_step_as_the_script_does_and_counts_its_regret(tmp_pat
         steps[-1]["rl"] = rl_acts
         return real_record(self, rl_acts)
 
-    def tick(self):  # the twin's world: its commands and whether it left the lane, step by step
-        progress = real_tick(self)
-        if isinstance(self.controller, jetracer._NullController):
-            twin.append((self.controller.steering, self.controller.throttle, self.off_track))
-        return progress
-
-    def preprocess(frame, previous_action):  # called by the car's observe, then for the twin, at every step
-        observations.append(real_preprocess(frame, previous_action))
-        return observations[-1]
-
     def human_action(self):  # hard left at full throttle from step 100 until the car leaves the lane after 105; again at 140-142
         t = len(steps) - 1
         if 100 <= t and not any(step["off"] for step in steps[105:]):
@@ -165,10 +176,8 @@ def test_train_stores_each_step_as_the_script_does_and_counts_its_regret(tmp_pat
     monkeypatch.setattr(jetracer.CarSession, "observe", observe)
     monkeypatch.setattr(jetracer.CarSession, "act", act)
     monkeypatch.setattr(jetracer.jirl.Gate, "record", record)
-    monkeypatch.setattr(jetracer.SimWorld, "tick", tick)
     monkeypatch.setattr(jetracer.CarSession, "human_action", human_action)
     monkeypatch.setattr(jetracer, "train", lambda args: result.append(real_train(args)))
-    monkeypatch.setattr(jetracer, "preprocess", preprocess)
     state = tmp_path / "t.pt"
     jetracer.main(["train", "--total-steps", "160", "--train-every", "40", "--gradient-steps", "2", "--jirl.guidance-steps", "60", "--jirl.rl-control-window", "100",
                    "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST, *PATIENT])  # fmt: skip
@@ -203,7 +212,7 @@ def test_train_stores_each_step_as_the_script_does_and_counts_its_regret(tmp_pat
             i += 1
         switches += now["rl"] != after["rl"] and not after["off"]  # a lane departure starts a new episode
         regret += max(0.0, 1.075 - reward)
-        _, twin_throttle, twin_off = twin[t]
+        _, twin_throttle, twin_off, _ = twin[t]
         paired += max(0.0, (-10.0 if twin_off else 1.0 + 0.1 * twin_throttle / 0.6) - reward)
     assert i == len(rows["obs"])
     rl = [step["rl"] for step in steps]
@@ -229,8 +238,8 @@ def test_a_car_that_drives_as_its_baseline_twin_has_no_paired_regret(tmp_path, m
     again and again, by 0.77777: a command the protocol rounds. No pause (--train-every past the end)
     stops the car mid-run."""
     monkeypatch.setattr(jetracer.LaneFollower, "__call__", lambda self, obs: np.array([0.77777, 1.0], np.float32))
-    real_observe, real_tick, real_preprocess = jetracer.CarSession.observe, jetracer.SimWorld.tick, jetracer.preprocess
-    poses, observations = {"car": [], "twin": []}, []
+    real_observe = jetracer.CarSession.observe
+    observations, ticks = record_the_worlds(monkeypatch)
 
     def observe(self):  # the world moves on once the last command has reached the controller, as within a period on the car
         command, controller = self.link._command, self.link._port.controller
@@ -241,18 +250,7 @@ def test_a_car_that_drives_as_its_baseline_twin_has_no_paired_regret(tmp_path, m
                 time.sleep(0.001)
         return real_observe(self)
 
-    def tick(self):
-        progress = real_tick(self)
-        poses["twin" if isinstance(self.controller, jetracer._NullController) else "car"].append(tuple(self.env._state))
-        return progress
-
-    def preprocess(frame, previous_action):  # called by the car's observe, then for the twin, at every step
-        observations.append(real_preprocess(frame, previous_action))
-        return observations[-1]
-
     monkeypatch.setattr(jetracer.CarSession, "observe", observe)
-    monkeypatch.setattr(jetracer.SimWorld, "tick", tick)
-    monkeypatch.setattr(jetracer, "preprocess", preprocess)
     state = tmp_path / "t.pt"
     jetracer.main(["train", "--total-steps", "100", "--train-every", "1000", "--gradient-steps", "1", "--jirl.gate-c", "1e300", "--jirl.guidance-steps", "0",
                    "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST, *PATIENT])  # fmt: skip
@@ -261,6 +259,7 @@ def test_a_car_that_drives_as_its_baseline_twin_has_no_paired_regret(tmp_path, m
     departures = int(np.sum(rewards == -10.0))
     assert departures >= 2 and counters["control_switches"] == 0
     # the car's world ticks as each step observes, so its tick t + 1 applies the command of step t; its first is at rest
+    poses = {world: [pose for *_, pose in ticks[world]] for world in ticks}
     assert len(poses["car"]) == len(poses["twin"]) == 100 and poses["car"][1:] == poses["twin"][:-1]
     assert len(observations) == 200
     for t in range(100):
@@ -273,24 +272,12 @@ def test_a_twin_that_leaves_the_lane_alone_is_put_back_at_rest(tmp_path, monkeyp
     """The twin is put back as the car would be: after a lane departure of its own (the baseline steers
     hard left; the agent drives the car, C = 0) its next observation ends with the action at rest."""
     monkeypatch.setattr(jetracer.LaneFollower, "__call__", lambda self, obs: np.array([1.0, 1.0], np.float32))
-    real_tick, real_preprocess, real_observe = jetracer.SimWorld.tick, jetracer.preprocess, jetracer.CarSession.observe
-    twin_off, car_off, observations = [], [], []
-
-    def tick(self):
-        progress = real_tick(self)
-        if isinstance(self.controller, jetracer._NullController):
-            twin_off.append(self.off_track)
-        return progress
-
-    def preprocess(frame, previous_action):  # called by the car's observe, then for the twin, at every step
-        observations.append(real_preprocess(frame, previous_action))
-        return observations[-1]
-
-    monkeypatch.setattr(jetracer.SimWorld, "tick", tick)
-    monkeypatch.setattr(jetracer, "preprocess", preprocess)
+    real_observe, car_off = jetracer.CarSession.observe, []
+    observations, ticks = record_the_worlds(monkeypatch)
     monkeypatch.setattr(jetracer.CarSession, "observe", lambda self: car_off.append(self.world.off_track) or real_observe(self))
     jetracer.main(["train", "--total-steps", "60", "--train-every", "1000", "--gradient-steps", "1", "--jirl.gate-c", "0", "--jirl.guidance-steps", "0",
                    "--checkpoint", str(tmp_path / "t.pt"), "--log-dir", str(tmp_path), *FAST, *PATIENT])  # fmt: skip
+    twin_off = [off for _, _, off, _ in ticks["twin"]]
     alone = [t for t in range(59) if twin_off[t] and not car_off[t + 1]]  # the car stayed in the lane
     assert alone
     for t in alone:
