@@ -95,6 +95,78 @@ def test_line_search_keeps_the_old_policy_when_nothing_improves():
     torch.testing.assert_close(torch.nn.utils.parameters_to_vector(trpo.policy_params(agent)), start)
 
 
+def gaussian_log_density(actions, mean, std):
+    """log N(actions; mean, std^2) summed over the action dimensions, for numpy arrays or torch tensors."""
+    log_std = std.log() if isinstance(std, torch.Tensor) else np.log(std)
+    return (-0.5 * ((actions - mean) / std) ** 2 - log_std - 0.5 * np.log(2 * np.pi)).sum(1)
+
+
+def policy_at(agent, theta: torch.Tensor, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The policy's mean and std with its parameters (actor_mean's, then the log-std) set to theta."""
+    chunks, i = {}, 0
+    for name, p in [*agent.actor_mean.named_parameters(), ("log_std", agent.actor_logstd)]:
+        chunks[name] = theta[i : i + p.numel()].view(p.shape)
+        i += p.numel()
+    log_std = chunks.pop("log_std")
+    return functional_call(agent.actor_mean, chunks, (obs,)), log_std.exp().expand(len(obs), -1)
+
+
+@pytest.mark.parametrize("max_kl, line_search_max_iter", [(1e-3, 10), (100.0, 10), (100.0, 3)])
+def test_trpo_step_is_the_natural_gradient_step_shrunk_until_the_kl_fits_and_the_surrogate_improves(max_kl, line_search_max_iter):
+    """The step is sqrt(2 max_kl / s^T F s) s with s = F^-1 g from the explicit (damped) Fisher matrix,
+    times the first of 1, 0.8, 0.64, ... at which the mean KL is within --max-kl and the surrogate is
+    above its start, both written out here; if none is, the policy is left exactly as it was. The
+    advantages prefer actions near 1, so a long step overshoots: at max_kl 100 the search rejects
+    fractions for their KL and one for its surrogate alone before it accepts the eighth."""
+    torch.manual_seed(0)
+    agent = trpo.Agent(obs_dim=3, act_dim=1, hidden_size=4).double()
+    obs = torch.randn(256, 3, dtype=torch.float64)
+    theta0 = torch.nn.utils.parameters_to_vector(trpo.policy_params(agent)).detach().clone()
+    with torch.no_grad():
+        old_mean, old_std = policy_at(agent, theta0, obs)
+        actions = torch.normal(old_mean, old_std)
+    old_logprobs = gaussian_log_density(actions, old_mean, old_std)
+    advantages = -((actions[:, 0] - 1.0) ** 2)
+    advantages = (advantages - advantages.mean()) / advantages.std()
+
+    def mean_kl(theta):
+        mean, std = policy_at(agent, theta, obs)
+        return (torch.log(std / old_std) + (old_std**2 + (old_mean - mean) ** 2) / (2 * std**2) - 0.5).sum(1).mean()
+
+    def surrogate(theta):
+        return (torch.exp(gaussian_log_density(actions, *policy_at(agent, theta, obs)) - old_logprobs) * advantages).mean()
+
+    damping = 0.1
+    fisher = torch.autograd.functional.hessian(mean_kl, theta0) + damping * torch.eye(len(theta0), dtype=torch.float64)
+    gradient = torch.autograd.functional.jacobian(surrogate, theta0)
+    direction = torch.linalg.solve(fisher, gradient)
+    full_step = torch.sqrt(2 * max_kl / (direction @ fisher @ direction)) * direction
+    with torch.no_grad():
+        fractions = 0.8 ** np.arange(line_search_max_iter)
+        kls = np.array([mean_kl(theta0 + f * full_step).item() for f in fractions])
+        objectives = np.array([surrogate(theta0 + f * full_step).item() for f in fractions])
+        start = surrogate(theta0).item()
+    acceptable = (kls <= max_kl) & (objectives > start)
+
+    args = trpo.Args(max_kl=max_kl, cg_damping=damping, cg_max_steps=100, line_search_max_iter=line_search_max_iter)
+    result = trpo.trpo_step(agent, obs, actions, old_logprobs, advantages, args)
+    theta = torch.nn.utils.parameters_to_vector(trpo.policy_params(agent)).detach()
+    if line_search_max_iter == 3:  # nothing acceptable: the policy is untouched
+        assert not acceptable.any() and not result["accepted"] and result["step_fraction"] == 0.0
+        assert torch.equal(theta, theta0) and result["objective"] == pytest.approx(start)
+        return
+    first = int(np.argmax(acceptable))
+    assert acceptable.any() and result["accepted"] and result["step_fraction"] == pytest.approx(fractions[first])
+    assert result["kl"] == pytest.approx(kls[first], rel=1e-6) and result["objective"] == pytest.approx(objectives[first], rel=1e-6)
+    torch.testing.assert_close(theta, theta0 + fractions[first] * full_step, rtol=1e-4, atol=1e-6)  # CG stops at its tolerance
+    if max_kl < 1:  # a short step: the quadratic model holds, the whole step is taken and its KL is near max_kl
+        assert first == 0 and 0.85 * max_kl < kls[0] <= max_kl
+    else:
+        rejected = slice(0, first)
+        assert first == 7
+        assert (kls[rejected] > max_kl).any() and ((kls[rejected] <= max_kl) & (objectives[rejected] <= start)).any()
+
+
 @pytest.mark.parametrize("script", [ppo, trpo], ids=["ppo_il", "trpo_il"])
 def test_imitation_clones_the_pendulum_baseline(script, tmp_path):
     from torch.utils.tensorboard import SummaryWriter
@@ -346,3 +418,150 @@ def test_the_last_rollouts_advantages_are_gae_summed_up_to_each_episode_end(name
                 break
     np.testing.assert_allclose(g["advantages"].numpy(), expected, rtol=1e-4, atol=1e-4)
     np.testing.assert_allclose(g["returns"].numpy(), expected + values, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("target_kl", [None, 1e-12])
+def test_ppo_minimises_the_clipped_surrogate_and_value_loss_it_logs(target_kl, tmp_path, monkeypatch):
+    """The last minibatch's losses and gradient, written out here at the weights it was taken at:
+    CleanRL's clipped surrogate on advantages normalised over the minibatch, the value loss clipped
+    around the rollout's values, and loss = pg - ent_coef * entropy + vf_coef * v. A small clip
+    coefficient, a large learning rate, three epochs and returns of order one (--norm-reward) make
+    both clips bind on both sides, on Lunar Lander's two action dimensions; --target-kl 1e-12 stops
+    after the first epoch."""
+    monkeypatch.chdir(tmp_path)
+    clip, ent_coef, vf_coef, max_grad_norm = 0.05, 0.01, 0.7, 0.1
+    argv = ["ppo_il.py", "--env-id", "LunarLanderContinuous-v3", "--num-steps", "128", "--total-timesteps", "128", "--num-minibatches", "2",
+            "--update-epochs", "3", "--learning-rate", "3e-3", "--clip-coef", str(clip), "--ent-coef", str(ent_coef), "--vf-coef", str(vf_coef),
+            "--max-grad-norm", str(max_grad_norm), "--norm-reward", "--il-steps", "200", "--il-max-epochs", "5", "--hidden-size", "16",
+            "--baseline-eval-episodes", "1", *([] if target_kl is None else ["--target-kl", str(target_kl)])]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", argv)
+    taken = []  # (gradient before clipping, after it, its norm) at every PPO minibatch
+    real_clip = torch.nn.utils.clip_grad_norm_
+
+    def recording_clip(parameters, max_norm, *a, **kw):
+        parameters = list(parameters)
+        before = {id(p): p.grad.detach().clone() for p in parameters}
+        norm = real_clip(parameters, max_norm, *a, **kw)
+        taken.append((before, {id(p): p.grad.detach().clone() for p in parameters}, float(norm)))
+        return norm
+
+    monkeypatch.setattr(torch.nn.utils, "clip_grad_norm_", recording_clip)
+    real_step = torch.optim.Adam.step
+    weights = []
+
+    def recording_step(self, *a, **kw):  # the weights each PPO loss was computed at (imitation's steps too)
+        weights.append({id(p): p.detach().clone() for group in self.param_groups for p in group["params"]})
+        return real_step(self, *a, **kw)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", recording_step)
+    g = runpy.run_path(str(ROOT / "ppo_il.py"), run_name="__main__")
+    agent, mb = g["agent"], g["mb_inds"]
+    epochs = 1 if target_kl is not None else 3
+    assert len(taken) == 2 * epochs and len(g["clipfracs"]) == 2 * epochs and g["epoch"] == epochs - 1
+    assert sorted(mb) != list(range(64, 128)) and len(set(mb)) == 64  # a shuffled half of the rollout
+    names = {id(p): name for name, p in agent.named_parameters()}
+    agent.double()
+
+    def forward(weights: dict, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The policy's mean and std and the value at obs, with the agent's weights set to `weights`."""
+        mean = functional_call(agent.actor_mean, {k.removeprefix("actor_mean."): v for k, v in weights.items() if k.startswith("actor_mean.")}, (obs,))
+        value = functional_call(agent.critic, {k.removeprefix("critic."): v for k, v in weights.items() if k.startswith("critic.")}, (obs,))[:, 0]
+        return mean, weights["actor_logstd"].exp(), value
+
+    # the log-probabilities stored at acting are the rollout policy's: the weights before the first update
+    rollout_policy = {names[i]: v.double() for i, v in weights[-len(taken)].items()}
+    with torch.no_grad():
+        mean, std, _ = forward(rollout_policy, g["obs_buf"].double())
+        np.testing.assert_allclose(g["logprobs"].numpy(), gaussian_log_density(g["actions"].double(), mean, std).numpy(), rtol=1e-5, atol=1e-5)
+
+    # the last minibatch's losses at the weights it was taken at (the last Adam step's)
+    w = {names[i]: v.double().requires_grad_() for i, v in weights[-1].items()}
+    assert set(w) == set(names.values())
+    mean, std, new_value = forward(w, g["obs_buf"].double()[mb])
+    log_ratio = gaussian_log_density(g["actions"].double()[mb], mean, std) - g["logprobs"].double()[mb]
+    ratio = log_ratio.exp()
+    adv = g["advantages"].double()[mb]
+    adv = (adv - adv.mean()) / (adv.std() + 1e-8)  # over the minibatch
+    returns, old_values = g["returns"].double()[mb], g["values"].double()[mb]
+    unclipped = (new_value - returns) ** 2
+    clipped = (old_values + (new_value - old_values).clamp(-clip, clip) - returns) ** 2
+    pg_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - clip, 1 + clip)).mean()
+    v_loss = 0.5 * torch.max(unclipped, clipped).mean()
+    entropy = (0.5 + 0.5 * np.log(2 * np.pi) + std.log()).sum(1).mean()
+    if target_kl is None:  # the clips bind, both ways: min, max or no clip would each give other numbers
+        outside = (ratio - 1).abs() > clip
+        assert (ratio > 1 + clip).any() and (ratio < 1 - clip).any() and outside[adv > 0].any() and outside[adv < 0].any()
+        assert (clipped > unclipped).any() and (clipped < unclipped).any()
+    np.testing.assert_allclose(g["pg_loss"].item(), pg_loss.item(), rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(g["v_loss"].item(), v_loss.item(), rtol=1e-4)
+    np.testing.assert_allclose(g["entropy_loss"].item(), entropy.item(), rtol=1e-5)
+    np.testing.assert_allclose(g["approx_kl"].item(), ((ratio - 1) - log_ratio).mean().item(), rtol=1e-3, atol=1e-7)
+    np.testing.assert_allclose(g["old_approx_kl"].item(), (-log_ratio).mean().item(), rtol=1e-3, atol=1e-7)
+    assert g["clipfracs"][-1] == pytest.approx(((ratio - 1).abs() > clip).double().mean().item())
+    y, y_pred = g["returns"].numpy().astype(np.float64), g["values"].numpy().astype(np.float64)
+    assert g["explained_var"] == pytest.approx(1 - np.var(y - y_pred) / np.var(y), rel=1e-4)
+
+    # the gradient the script clipped is that of pg - ent_coef * entropy + vf_coef * v, and the clip scaled it to max_grad_norm
+    (pg_loss - ent_coef * entropy + vf_coef * v_loss).backward()
+    before, after, norm = taken[-1]
+    for i, grad in before.items():
+        np.testing.assert_allclose(grad.numpy(), w[names[i]].grad.numpy(), rtol=2e-3, atol=1e-6, err_msg=names[i])
+    total = np.sqrt(sum((v.grad**2).sum().item() for v in w.values()))
+    assert norm == pytest.approx(total, rel=1e-3) and total > max_grad_norm
+    for i, grad in after.items():
+        np.testing.assert_allclose(grad.numpy(), before[i].numpy() * max_grad_norm / norm, rtol=1e-4, atol=1e-9, err_msg=names[i])
+
+
+def test_trpo_steps_from_the_rollouts_policy_on_normalised_advantages_then_fits_the_value(tmp_path, monkeypatch):
+    """One Lunar Lander rollout through trpo_il.py: the stored log-probabilities are the policy's that
+    the step starts from, the step sees the rollout's advantages normalised, the logged KL, objective
+    and entropy are those of the policy it ends at (written out here), and the value loss is the last
+    shuffled critic minibatch's, at the weights its gradient was taken at."""
+    monkeypatch.chdir(tmp_path)
+    argv = ["trpo_il.py", "--env-id", "LunarLanderContinuous-v3", "--num-steps", "128", "--total-timesteps", "128", "--n-critic-updates", "2",
+            "--critic-batch-size", "48", "--il-steps", "200", "--il-max-epochs", "5", "--hidden-size", "16", "--baseline-eval-episodes", "1"]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", argv)
+    starts = []
+    real_to_vector = torch.nn.utils.parameters_to_vector
+    monkeypatch.setattr(torch.nn.utils, "parameters_to_vector", lambda params: starts.append(real_to_vector(params).detach().clone()) or starts[-1])
+    real_step, steps = torch.optim.Adam.step, []
+
+    def recording_step(self, *a, **kw):
+        steps.append((self, {id(p): p.detach().clone() for group in self.param_groups for p in group["params"]}))
+        return real_step(self, *a, **kw)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", recording_step)
+    g = runpy.run_path(str(ROOT / "trpo_il.py"), run_name="__main__")
+    agent, step = g["agent"], g["step"]
+    obs, actions = g["obs_buf"].double(), g["actions"].double()
+    agent.double()
+    (start,) = starts  # one policy step
+    end = torch.nn.utils.parameters_to_vector(trpo.policy_params(agent)).detach()
+
+    def log_density(theta):
+        return gaussian_log_density(actions, *policy_at(agent, theta, obs))
+
+    with torch.no_grad():
+        np.testing.assert_allclose(g["logprobs"].numpy(), log_density(start.double()).numpy(), rtol=1e-5, atol=1e-5)
+        advantages = g["advantages"].double()
+        normalised = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+        np.testing.assert_allclose(g["b_advantages"].numpy(), normalised.numpy(), rtol=1e-5, atol=1e-6)
+        assert step["accepted"] and not torch.equal(start, end)
+        old_mean, old_std = policy_at(agent, start.double(), obs)
+        mean, std = policy_at(agent, end, obs)
+        kl = (torch.log(std / old_std) + (old_std**2 + (old_mean - mean) ** 2) / (2 * std**2) - 0.5).sum(1).mean().item()
+        assert step["kl"] == pytest.approx(kl, rel=1e-4) and 0.0 < kl <= 0.01
+        ratio = torch.exp(log_density(end) - log_density(start.double()))
+        assert step["objective"] == pytest.approx((ratio * normalised).mean().item(), rel=1e-4) and step["objective"] > 0.0
+        assert g["entropy"] == pytest.approx((0.5 + 0.5 * np.log(2 * np.pi) + std.log()).sum(1).mean().item(), rel=1e-5)
+
+    critic_steps = [weights for optimizer, weights in steps if optimizer is g["value_optimizer"]]
+    assert len(critic_steps) == 2 * 3  # two epochs of minibatches of 48, 48 and 32 steps
+    mb = g["mb_inds"]
+    assert len(mb) == 32 and sorted(mb) != list(range(96, 128))  # the last of a shuffled epoch
+    names = {id(p): name.removeprefix("critic.") for name, p in agent.critic.named_parameters()}
+    weights = {names[i]: w.double() for i, w in critic_steps[-1].items()}
+    with torch.no_grad():
+        value = functional_call(agent.critic, weights, (obs[mb],))[:, 0]
+        v_loss = 0.5 * ((value - g["returns"].double()[mb]) ** 2).mean().item()
+    assert g["v_loss"].item() == pytest.approx(v_loss, rel=1e-4)
