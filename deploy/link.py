@@ -213,13 +213,14 @@ class HostLink:
     def _send_loop(self) -> None:
         next_time = self._clock()
         while not self._stop_event.is_set():
-            command = self._command
             try:
                 if self.connected.is_set():
-                    if command is not None and self._armed and self._clock() - command[2] <= self.command_timeout:
-                        self._send(p.DRIVE, (p.to_thousandths(command[0]), p.to_thousandths(command[1])))
-                    else:
-                        self._send(p.STOP)
+                    with self._lock:  # read where it is written: a command stopped while this send waited for the port is not sent
+                        command = self._command
+                        if command is not None and self._armed and self._clock() - command[2] <= self.command_timeout:
+                            self._send(p.DRIVE, (p.to_thousandths(command[0]), p.to_thousandths(command[1])))
+                        else:
+                            self._send(p.STOP)
             except Exception:
                 pass  # the receive loop notices a dead port and reconnects
             next_time += self.send_period

@@ -126,7 +126,7 @@ class FrameDecoder:
             del self._buffer[: end + 1]
             if not chunk:
                 continue  # back-to-back delimiters, a common way to resynchronise
-            if len(chunk) > MAX_BODY + 2:
+            if len(chunk) > MAX_BODY + 1:  # COBS adds one byte to a body this short
                 self._drop("overlong")
                 continue
             try:

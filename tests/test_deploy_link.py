@@ -1,9 +1,13 @@
 """deploy/: the serial protocol, the mock firmware's state machine, and the host link over mock ports and a pty."""
 
+import queue
 import subprocess
 import sys
+import threading
 import time
+from collections import deque
 
+import numpy as np
 import pytest
 import serial
 from hypothesis import given, settings
@@ -93,6 +97,25 @@ def send_body(controller, body: bytes, now):
     return frames(controller)
 
 
+def test_frames_shorter_or_longer_than_any_body_are_dropped_as_such():
+    decoder = p.FrameDecoder()
+    for n in range(4):  # less than a header and a CRC, with a good CRC: dropped before anything is indexed
+        assert list(decoder.feed(frame_body(bytes(n)))) == []
+    assert decoder.dropped == {"short": 4}
+    longest = bytes([p.VERSION, 0x84, 0, p.MAX_PAYLOAD]) + bytes(p.MAX_PAYLOAD)  # the longest body, of a type unknown here
+    assert list(decoder.feed(frame_body(longest))) == [] and decoder.dropped == {"short": 4, "type": 1}
+    one_more = bytes([p.VERSION, 0x84, 0, p.MAX_PAYLOAD + 1]) + bytes(p.MAX_PAYLOAD + 1)
+    assert list(decoder.feed(frame_body(one_more))) == [] and decoder.dropped == {"short": 4, "type": 1, "overlong": 1}
+    assert list(decoder.feed(b"\x01" * (2 * p.MAX_BODY + 1))) == []  # no delimiter in sight: counted, and only a tail kept
+    assert decoder.dropped["overlong"] == 2 and len(decoder._buffer) == p.MAX_BODY
+    assert list(decoder.feed(b"\x00" + p.encode(MESSAGES[2]))) == [MESSAGES[2]]
+
+
+def test_commands_are_rounded_and_clamped_to_thousandths():
+    values = [0.7777, -0.7777, 0.0004, 0.0006, -0.0006, 1.5, -3.0, 1.0, -1.0, 0.0]
+    assert [p.to_thousandths(v) for v in values] == [778, -778, 0, 1, -1, 1000, -1000, 1000, -1000, 0]
+
+
 def test_watchdog_trips_exactly_after_the_armed_period():
     c = MockController(now=0.0)
     (ack,) = send(c, p.Message(p.ARM, 1, (250, 600)), 0.0)
@@ -168,7 +191,7 @@ def wait_until(predicate, timeout=1.0):
     return False
 
 
-@pytest.mark.parametrize("bad", [dict(send_hz=0.0), dict(command_timeout=-1.0), dict(watchdog_ms=70_000), dict(throttle_cap=1.5), dict(send_hz=float("nan"))])
+@pytest.mark.parametrize("bad", [dict(send_hz=0.0), dict(command_timeout=-1.0), dict(watchdog_ms=0), dict(watchdog_ms=70_000), dict(throttle_cap=1.5), dict(send_hz=float("nan"))])
 def test_link_refuses_settings_the_protocol_cannot_carry(bad):
     with pytest.raises(ValueError, match="HostLink needs"):
         HostLink("mockjetracer://", **bad)  # before any port is opened
@@ -297,6 +320,224 @@ def test_a_link_refused_for_hours_keeps_a_bounded_history():
         assert link.decoder.refusable == []
     finally:
         link.close()
+
+
+class ScriptedPort:
+    """A controller the test plays: it keeps what the host writes, as messages, answers each ARM with an
+    armed TELEMETRY acknowledging it, and otherwise says only what the test queues with send()."""
+
+    def __init__(self):
+        self.raw, self.written, self.decoder = bytearray(), [], p.FrameDecoder()
+        self.incoming: "queue.Queue[bytes]" = queue.Queue()
+        self.failure = None  # an exception the next read raises: the port unplugged
+
+    def write(self, data):
+        self.raw += data
+        for message in self.decoder.feed(data):
+            self.written.append(message)
+            if message.type == p.ARM:
+                self.send(p.encode(p.Message(p.TELEMETRY, 0, (message.seq, p.ARM, 0, 0, p.STATUS_ARMED, 0))))
+        return len(data)
+
+    def send(self, data: bytes):
+        self.incoming.put(data)
+
+    def read(self, size):
+        if self.failure is not None:
+            raise self.failure
+        try:
+            return self.incoming.get(timeout=0.005)
+        except queue.Empty:
+            return b""
+
+    def close(self):
+        pass
+
+    def types_since(self, n: int) -> list:
+        return [m.type for m in self.written[n:]]
+
+
+def next_sends(port: ScriptedPort, count: int = 5) -> list:
+    """The types of the send loop's next `count` writes, after one that may have been in flight when the
+    link's state changed (telemetry is handled without waiting for a send)."""
+    n = len(port.written)
+    assert wait_until(lambda: len(port.written) >= n + 1 + count, timeout=5.0)
+    return port.types_since(n + 1)[:count]
+
+
+@pytest.mark.parametrize(
+    "news, disarms",
+    [
+        (p.Message(p.TELEMETRY, 0, (0, 0, 0, 0, 0, 1)), True),  # unsolicited: no longer armed
+        (p.Message(p.TELEMETRY, 0, (0, 0, 0, 0, p.STATUS_WATCHDOG_TRIPPED, 1)), True),
+        (p.Message(p.TELEMETRY, 0, (0, 0, 0, 0, p.STATUS_ESTOP_LATCHED, 1)), True),
+        (p.Message(p.NACK, 0, (9, p.DRIVE, p.NOT_ARMED)), True),  # a controller that restarted
+        (p.Message(p.NACK, 0, (9, p.DRIVE, p.ESTOP_LATCHED)), True),  # e-stopped by another hand
+        (p.Message(p.NACK, 0, (9, p.DRIVE, p.OUT_OF_RANGE)), False),  # a refusal that says nothing of arming
+        (p.Message(p.TELEMETRY, 0, (0, 0, 0, 0, p.STATUS_ARMED, 1)), False),
+    ],
+)
+def test_each_sign_of_an_unarmed_controller_alone_ends_the_drive_commands(news, disarms):
+    port = ScriptedPort()
+    link = HostLink("scripted://", send_hz=200, command_timeout=30.0, opener=lambda url, timeout: port).start()
+    try:
+        assert link.arm()
+        link.drive(0.1, 0.5)
+        assert wait_until(lambda: p.DRIVE in port.types_since(0))
+        port.send(p.encode(news))
+        assert wait_until(lambda: news in link.nacks or (link.telemetry is not None and link.telemetry.uptime_ms == 1))  # handled
+        assert wait_until(lambda: link.armed != disarms)
+        assert set(next_sends(port)) == ({p.STOP} if disarms else {p.DRIVE})
+    finally:
+        link.close()
+
+
+def test_an_estop_forgets_the_command_so_a_rearmed_car_waits_for_a_new_one():
+    port = ScriptedPort()
+    link = HostLink("scripted://", send_hz=200, command_timeout=30.0, opener=lambda url, timeout: port).start()  # a command stays fresh all test
+    try:
+        assert link.arm()
+        link.drive(0.1, 0.5)
+        assert wait_until(lambda: p.DRIVE in port.types_since(0))
+        n = len(port.written)
+        assert link.estop() and p.ESTOP in port.types_since(n) and not link.armed  # no controller says so: the host knows
+        assert set(next_sends(port)) == {p.STOP}
+        assert link.arm()
+        assert set(next_sends(port)) == {p.STOP}, "the command before the e-stop is not resumed"
+        link.drive(0.0, 0.3)
+        assert wait_until(lambda: port.written[-1].type == p.DRIVE and port.written[-1].fields == (0, 300))
+    finally:
+        link.close()
+
+
+@pytest.mark.parametrize("how", ["stop", "estop", "non-finite"])
+def test_no_drive_is_written_once_stop_estop_or_a_non_finite_command_returns(how):
+    """The send loop reads the command and writes it under the link's lock. Holding that lock, the test
+    lets the loop come to its next send and wait there, and stops the car meanwhile: the loop, let go,
+    sends STOP. Read outside the lock, the command it read before waiting was written after the ESTOP
+    (7 times in 2,000 e-stops with a 1 us thread switch interval)."""
+    port = ScriptedPort()
+    link = HostLink("scripted://", send_hz=200, command_timeout=30.0, opener=lambda url, timeout: port).start()
+    try:
+        assert link.arm()
+        link.drive(0.1, 0.5)
+        assert wait_until(lambda: p.DRIVE in port.types_since(0))
+        with link._lock:
+            time.sleep(0.05)  # ten send periods: the loop is waiting for the lock
+            n = len(port.written)
+            if how == "stop":
+                link.stop()
+            elif how == "estop":
+                assert link.estop()
+            else:
+                with pytest.raises(ValueError, match="told to stop"):
+                    link.drive(float("nan"), 0.5)
+        assert wait_until(lambda: len(port.written) >= n + 3)
+        assert p.DRIVE not in port.types_since(n)
+    finally:
+        link.close()
+
+
+def test_a_reconnected_link_starts_clean_unarmed_and_without_a_command():
+    old, new = ScriptedPort(), ScriptedPort()
+    ports = iter([old, new])
+    link = HostLink("scripted://", send_hz=200, command_timeout=30.0, backoff=(0.01, 0.01), opener=lambda url, timeout: next(ports)).start()
+    try:
+        assert link.arm()
+        link.drive(0.1, 0.5)
+        assert wait_until(lambda: p.DRIVE in old.types_since(0))
+        old.send(p.encode(p.Message(p.TELEMETRY, 0, (0, 0, 100, 500, p.STATUS_ARMED, 1)))[:6])  # half a frame, then the unplug
+        assert wait_until(old.incoming.empty)  # read: the next read fails
+        old.failure = OSError("unplugged")
+        assert wait_until(lambda: link.connected.is_set() and link.reconnects == 1)
+        assert new.raw[:1] == p.DELIMITER  # whatever partial frame the controller holds is ended first
+        assert not link.armed and set(next_sends(new)) == {p.STOP}
+        new.send(p.encode(p.Message(p.TELEMETRY, 0, (0, 0, 0, 0, 0, 777))))  # decoded alone, not glued to the old half frame
+        assert wait_until(lambda: link.telemetry is not None and link.telemetry.uptime_ms == 777)
+        assert link.arm()
+        assert set(next_sends(new)) == {p.STOP}, "the command before the unplug is not resumed"
+    finally:
+        link.close()
+
+
+def test_close_sends_stop_before_estop():
+    port = ScriptedPort()
+    link = HostLink("scripted://", send_hz=0.5, opener=lambda url, timeout: port).start()  # the loop sends once, then waits 2 s
+    assert wait_until(lambda: len(port.written) == 1)
+    link.close()
+    assert port.types_since(0) == [p.STOP, p.STOP, p.ESTOP]
+
+
+def test_only_an_acknowledging_telemetry_answers_a_frame_and_times_it_once():
+    link = HostLink("scripted://", clock=lambda: 10.0)  # not started: its handler is called directly
+    link._sent[5] = 9.75
+    link._handle(p.Message(p.TELEMETRY, 0, (5, 0, 0, 0, p.STATUS_ARMED, 1)))  # unsolicited, though its seq field reads 5
+    assert 5 not in link._acks and list(link.round_trips) == []
+    link._handle(p.Message(p.TELEMETRY, 0, (5, p.DRIVE, 0, 0, p.STATUS_ARMED, 2)))
+    assert link._acks == {5: p.STATUS_ARMED} and list(link.round_trips) == [0.25]
+    link._handle(p.Message(p.TELEMETRY, 0, (5, p.DRIVE, 0, 0, p.STATUS_ARMED, 3)))  # a duplicate: no second round trip
+    assert list(link.round_trips) == [0.25]
+
+
+def test_round_trip_statistics_are_the_median_and_the_99th_percentile():
+    link = HostLink("scripted://")
+    assert link.round_trip_stats() == {}
+    link.round_trips = deque(float(t) for t in reversed(range(200)))
+    assert link.round_trip_stats() == {"p50": 99.5, "p99": 198.0}  # the 199th of 200, not the largest
+
+
+class RecordingEvent(threading.Event):
+    """An event whose waits return at once and are recorded, each passed to `on_wait`: a loop's sleeps without the sleeping."""
+
+    def __init__(self, on_wait=None):
+        super().__init__()
+        self.waits, self.on_wait = [], on_wait
+
+    def wait(self, timeout=None):
+        self.waits.append(timeout)
+        if self.on_wait is not None:
+            self.on_wait(timeout)
+        return self.is_set()
+
+
+def test_reopening_backs_off_exponentially_up_to_its_cap():
+    failures, port = iter(range(6)), ScriptedPort()
+
+    def opener(url, timeout):
+        if next(failures, None) is not None:
+            raise OSError("no such device")
+        return port
+
+    link = HostLink("scripted://", backoff=(0.01, 0.05), opener=opener)  # not started: _reconnect runs here
+    link._stop_event = RecordingEvent()
+    link._reconnect()
+    assert link._stop_event.waits == [0.01, 0.02, 0.04, 0.05, 0.05, 0.05]
+    assert link.reconnects == 1 and link.connected.is_set() and link._port is port and not link.armed
+
+
+def test_the_send_loop_keeps_its_rate_when_its_sends_take_time():
+    now = [100.0]
+
+    def clock():  # every reading of the clock comes 3 ms after the last: a slow port
+        now[0] += 0.003
+        return now[0]
+
+    link = HostLink("scripted://", send_hz=50, clock=clock)  # not started: its send loop runs here
+    link._port = port = ScriptedPort()
+    link.connected.set()
+    woke = []
+
+    def sleep(seconds):
+        now[0] += seconds
+        woke.append(now[0])
+        if len(woke) == 5:
+            link._stop_event.set()
+
+    link._stop_event = RecordingEvent(sleep)
+    start = now[0] + 0.003  # the loop's first reading
+    link._send_loop()
+    assert port.types_since(0) == [p.STOP] * 5
+    np.testing.assert_allclose(woke, [start + 0.02 * k for k in range(1, 6)])  # every 20 ms, not every 20 ms plus the sends
 
 
 def test_pty_link_survives_an_unplug_and_never_rearms_itself():
