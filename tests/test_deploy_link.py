@@ -6,6 +6,7 @@ import sys
 import threading
 import time
 from collections import deque
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -365,6 +366,22 @@ def next_sends(port: ScriptedPort, count: int = 5) -> list:
     return port.types_since(n + 1)[:count]
 
 
+@contextmanager
+def driving(*ports: ScriptedPort, **settings):
+    """A link opening `ports` in turn (one new port by default), armed and driving (0.1, 0.5) with a
+    command that stays fresh all test; closed at the end."""
+    ports = ports or (ScriptedPort(),)
+    opened = iter(ports)
+    link = HostLink("scripted://", send_hz=200, command_timeout=30.0, opener=lambda url, timeout: next(opened), **settings).start()
+    try:
+        assert link.arm()
+        link.drive(0.1, 0.5)
+        assert wait_until(lambda: p.DRIVE in ports[0].types_since(0))
+        yield link, ports[0]
+    finally:
+        link.close()
+
+
 @pytest.mark.parametrize(
     "news, disarms",
     [
@@ -378,27 +395,15 @@ def next_sends(port: ScriptedPort, count: int = 5) -> list:
     ],
 )
 def test_each_sign_of_an_unarmed_controller_alone_ends_the_drive_commands(news, disarms):
-    port = ScriptedPort()
-    link = HostLink("scripted://", send_hz=200, command_timeout=30.0, opener=lambda url, timeout: port).start()
-    try:
-        assert link.arm()
-        link.drive(0.1, 0.5)
-        assert wait_until(lambda: p.DRIVE in port.types_since(0))
+    with driving() as (link, port):
         port.send(p.encode(news))
         assert wait_until(lambda: news in link.nacks or (link.telemetry is not None and link.telemetry.uptime_ms == 1))  # handled
         assert wait_until(lambda: link.armed != disarms)
         assert set(next_sends(port)) == ({p.STOP} if disarms else {p.DRIVE})
-    finally:
-        link.close()
 
 
 def test_an_estop_forgets_the_command_so_a_rearmed_car_waits_for_a_new_one():
-    port = ScriptedPort()
-    link = HostLink("scripted://", send_hz=200, command_timeout=30.0, opener=lambda url, timeout: port).start()  # a command stays fresh all test
-    try:
-        assert link.arm()
-        link.drive(0.1, 0.5)
-        assert wait_until(lambda: p.DRIVE in port.types_since(0))
+    with driving() as (link, port):
         n = len(port.written)
         assert link.estop() and p.ESTOP in port.types_since(n) and not link.armed  # no controller says so: the host knows
         assert set(next_sends(port)) == {p.STOP}
@@ -406,8 +411,6 @@ def test_an_estop_forgets_the_command_so_a_rearmed_car_waits_for_a_new_one():
         assert set(next_sends(port)) == {p.STOP}, "the command before the e-stop is not resumed"
         link.drive(0.0, 0.3)
         assert wait_until(lambda: port.written[-1].type == p.DRIVE and port.written[-1].fields == (0, 300))
-    finally:
-        link.close()
 
 
 @pytest.mark.parametrize("how", ["stop", "estop", "non-finite"])
@@ -416,12 +419,7 @@ def test_no_drive_is_written_once_stop_estop_or_a_non_finite_command_returns(how
     lets the loop come to its next send and wait there, and stops the car meanwhile: the loop, let go,
     sends STOP. Read outside the lock, the command it read before waiting was written after the ESTOP
     (7 times in 2,000 e-stops with a 1 us thread switch interval)."""
-    port = ScriptedPort()
-    link = HostLink("scripted://", send_hz=200, command_timeout=30.0, opener=lambda url, timeout: port).start()
-    try:
-        assert link.arm()
-        link.drive(0.1, 0.5)
-        assert wait_until(lambda: p.DRIVE in port.types_since(0))
+    with driving() as (link, port):
         with link._lock:
             time.sleep(0.05)  # ten send periods: the loop is waiting for the lock
             n = len(port.written)
@@ -434,18 +432,11 @@ def test_no_drive_is_written_once_stop_estop_or_a_non_finite_command_returns(how
                     link.drive(float("nan"), 0.5)
         assert wait_until(lambda: len(port.written) >= n + 3)
         assert p.DRIVE not in port.types_since(n)
-    finally:
-        link.close()
 
 
 def test_a_reconnected_link_starts_clean_unarmed_and_without_a_command():
     old, new = ScriptedPort(), ScriptedPort()
-    ports = iter([old, new])
-    link = HostLink("scripted://", send_hz=200, command_timeout=30.0, backoff=(0.01, 0.01), opener=lambda url, timeout: next(ports)).start()
-    try:
-        assert link.arm()
-        link.drive(0.1, 0.5)
-        assert wait_until(lambda: p.DRIVE in old.types_since(0))
+    with driving(old, new, backoff=(0.01, 0.01)) as (link, _):
         old.send(p.encode(p.Message(p.TELEMETRY, 0, (0, 0, 100, 500, p.STATUS_ARMED, 1)))[:6])  # half a frame, then the unplug
         assert wait_until(old.incoming.empty)  # read: the next read fails
         old.failure = OSError("unplugged")
@@ -456,8 +447,6 @@ def test_a_reconnected_link_starts_clean_unarmed_and_without_a_command():
         assert wait_until(lambda: link.telemetry is not None and link.telemetry.uptime_ms == 777)
         assert link.arm()
         assert set(next_sends(new)) == {p.STOP}, "the command before the unplug is not resumed"
-    finally:
-        link.close()
 
 
 def test_close_sends_stop_before_estop():
