@@ -521,9 +521,13 @@ def test_trpo_steps_from_the_rollouts_policy_on_normalised_advantages_then_fits_
     argv = ["trpo_il.py", "--env-id", "LunarLanderContinuous-v3", "--num-steps", "128", "--total-timesteps", "128", "--n-critic-updates", "2",
             "--critic-batch-size", "48", "--il-steps", "200", "--il-max-epochs", "5", "--hidden-size", "16", "--baseline-eval-episodes", "1"]  # fmt: skip
     monkeypatch.setattr(sys, "argv", argv)
-    starts = []
-    real_to_vector = torch.nn.utils.parameters_to_vector
-    monkeypatch.setattr(torch.nn.utils, "parameters_to_vector", lambda params: starts.append(real_to_vector(params).detach().clone()) or starts[-1])
+    starts, real_to_vector = [], torch.nn.utils.parameters_to_vector
+
+    def recording_to_vector(params):  # trpo_step reads the policy it starts from with it, once a step
+        starts.append(real_to_vector(params).detach().clone())
+        return starts[-1]
+
+    monkeypatch.setattr(torch.nn.utils, "parameters_to_vector", recording_to_vector)
     real_step, steps = torch.optim.Adam.step, []
 
     def recording_step(self, *a, **kw):
