@@ -32,22 +32,11 @@ def test_fisher_vector_product_equals_the_explicit_fisher_matrix():
     with torch.no_grad():
         agent.actor_logstd.copy_(torch.tensor([[-0.3, 0.4]]))
     obs = torch.randn(7, 2, dtype=torch.float64)
-    names = ["actor_mean." + n for n, _ in agent.actor_mean.named_parameters()] + ["actor_logstd"]
-    params = trpo.policy_params(agent)
-    shapes = [p.shape for p in params]
-    theta0 = torch.nn.utils.parameters_to_vector(params).detach()
+    theta0 = torch.nn.utils.parameters_to_vector(trpo.policy_params(agent)).detach()
     old_mean, old_std = agent.actor_mean(obs).detach(), agent.actor_logstd.exp().detach()
 
     def mean_kl(theta):  # KL(pi_old || pi_theta) for diagonal Gaussians, written out
-        chunks, i = {}, 0
-        for name, shape in zip(names, shapes):
-            chunks[name] = theta[i : i + shape.numel()].view(shape)
-            i += shape.numel()
-        sub = {k.removeprefix("actor_mean."): v for k, v in chunks.items() if k.startswith("actor_mean.")}
-        mean = functional_call(agent.actor_mean, sub, (obs,))
-        std = chunks["actor_logstd"].exp()
-        kl = torch.log(std / old_std) + (old_std**2 + (old_mean - mean) ** 2) / (2 * std**2) - 0.5
-        return kl.sum(1).mean()
+        return mean_gaussian_kl(old_mean, old_std, *policy_at(agent, theta, obs))
 
     fisher = torch.autograd.functional.hessian(mean_kl, theta0)
     v = torch.randn_like(theta0)
@@ -101,6 +90,16 @@ def gaussian_log_density(actions, mean, std):
     return (-0.5 * ((actions - mean) / std) ** 2 - log_std - 0.5 * np.log(2 * np.pi)).sum(1)
 
 
+def mean_gaussian_kl(old_mean, old_std, mean, std) -> torch.Tensor:
+    """KL(N(old_mean, old_std^2) || N(mean, std^2)) summed over the action dimensions, averaged over the states."""
+    return (torch.log(std / old_std) + (old_std**2 + (old_mean - mean) ** 2) / (2 * std**2) - 0.5).sum(1).mean()
+
+
+def mean_gaussian_entropy(std: torch.Tensor) -> torch.Tensor:
+    """The entropy of N(mean, std^2) summed over the action dimensions, averaged over the states."""
+    return (0.5 + 0.5 * np.log(2 * np.pi) + std.log()).sum(1).mean()
+
+
 def policy_at(agent, theta: torch.Tensor, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The policy's mean and std with its parameters (actor_mean's, then the log-std) set to theta."""
     chunks, i = {}, 0
@@ -131,7 +130,7 @@ def test_trpo_step_is_the_natural_gradient_step_shrunk_until_the_kl_fits_and_the
 
     def mean_kl(theta):
         mean, std = policy_at(agent, theta, obs)
-        return (torch.log(std / old_std) + (old_std**2 + (old_mean - mean) ** 2) / (2 * std**2) - 0.5).sum(1).mean()
+        return mean_gaussian_kl(old_mean, old_std, mean, std)
 
     def surrogate(theta):
         return (torch.exp(gaussian_log_density(actions, *policy_at(agent, theta, obs)) - old_logprobs) * advantages).mean()
@@ -487,7 +486,7 @@ def test_ppo_minimises_the_clipped_surrogate_and_value_loss_it_logs(target_kl, t
     clipped = (old_values + (new_value - old_values).clamp(-clip, clip) - returns) ** 2
     pg_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - clip, 1 + clip)).mean()
     v_loss = 0.5 * torch.max(unclipped, clipped).mean()
-    entropy = (0.5 + 0.5 * np.log(2 * np.pi) + std.log()).sum(1).mean()
+    entropy = mean_gaussian_entropy(std)
     if target_kl is None:  # the clips bind, both ways: min, max or no clip would each give other numbers
         outside = (ratio - 1).abs() > clip
         assert (ratio > 1 + clip).any() and (ratio < 1 - clip).any() and outside[adv > 0].any() and outside[adv < 0].any()
@@ -553,11 +552,11 @@ def test_trpo_steps_from_the_rollouts_policy_on_normalised_advantages_then_fits_
         assert step["accepted"] and not torch.equal(start, end)
         old_mean, old_std = policy_at(agent, start.double(), obs)
         mean, std = policy_at(agent, end, obs)
-        kl = (torch.log(std / old_std) + (old_std**2 + (old_mean - mean) ** 2) / (2 * std**2) - 0.5).sum(1).mean().item()
+        kl = mean_gaussian_kl(old_mean, old_std, mean, std).item()
         assert step["kl"] == pytest.approx(kl, rel=1e-4) and 0.0 < kl <= 0.01
         ratio = torch.exp(log_density(end) - log_density(start.double()))
         assert step["objective"] == pytest.approx((ratio * normalised).mean().item(), rel=1e-4) and step["objective"] > 0.0
-        assert g["entropy"] == pytest.approx((0.5 + 0.5 * np.log(2 * np.pi) + std.log()).sum(1).mean().item(), rel=1e-5)
+        assert g["entropy"] == pytest.approx(mean_gaussian_entropy(std).item(), rel=1e-5)
 
     critic_steps = [weights for optimizer, weights in steps if optimizer is g["value_optimizer"]]
     assert len(critic_steps) == 2 * 3  # two epochs of minibatches of 48, 48 and 32 steps
