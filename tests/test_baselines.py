@@ -1,6 +1,8 @@
 """The baseline controllers: valid, deterministic, in their measured band; the registry; the CLI."""
 
+import math
 import os
+import re
 import subprocess
 import sys
 
@@ -8,7 +10,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from envs import BASELINES, EXPERTS, get_baseline, load_baseline, make_env, rollout
+from envs import BASELINES, EXPERTS, baselines, get_baseline, load_baseline, make_env, rollout
 
 from conftest import ROOT, load_script
 
@@ -44,6 +46,32 @@ def test_pendulum_baseline_swings_up_slowly():
     assert -1.6 < per_step < -0.6
 
 
+
+def test_pendulum_baseline_starts_a_swing_from_rest_pumps_at_half_torque_and_catches_near_the_top():
+    swing_up = BASELINES["Pendulum-v1"]
+
+    def at(theta, w=0.0):
+        return float(swing_up(np.array([math.cos(theta), math.sin(theta), w], dtype=np.float32))[0])
+
+    # the law's two regions, on each side of the catch's edge at cos(theta) = 0.85 (theta = 0.555 rad)
+    assert at(0.6) == 1.0  # below it: pumping, capped at 1 N m (short of its energy, so it pushes)
+    assert at(0.5) == -2.0  # above it: the PD catch, -(6 * 0.5 + 0) = -3, clipped to the motor's 2 N m
+    assert at(0.3, w=-0.5) == pytest.approx(-(6.0 * 0.3 - 0.5))
+    env = make_env("Pendulum-v1")
+    env.reset(seed=0)
+    env.unwrapped.state = np.array([math.pi, 0.0])  # hanging straight down, at rest: sign(w) alone would never push
+    obs, torques, costs = env.unwrapped._get_obs(), [], []
+    for _ in range(200):
+        torque = swing_up(obs)
+        torques.append((float(obs[0]), float(torque[0])))
+        obs, reward, *_ = env.step(torque)
+        costs.append(-reward)
+    env.close()
+    assert torques[0][1] != 0.0
+    pumping = [abs(u) for cos_theta, u in torques if cos_theta <= 0.85]
+    assert len(pumping) > 30 and max(pumping) == 1.0, "it pumps with half the 2 N m the motor has, the deliberate weakness"
+    assert max(costs[-20:]) < 0.05, "and ends balanced upright"
+
 def test_lander_baseline_lands_and_is_beaten_by_the_expert():
     env = make_env("LunarLanderContinuous-v3")
     baseline = [rollout(env, BASELINES["LunarLanderContinuous-v3"], seed) for seed in range(3)]
@@ -56,6 +84,22 @@ def test_lander_baseline_lands_and_is_beaten_by_the_expert():
     assert np.all((150 < baseline_returns) & (baseline_returns < 250)), baseline_returns
     assert np.all(expert_returns > baseline_returns + 30), (expert_returns, baseline_returns)
 
+
+
+def test_lander_baseline_sinks_at_its_reference_leans_at_most_0_3_rad_and_stops_steering_on_either_leg():
+    slow_descent = BASELINES["LunarLanderContinuous-v3"]
+
+    def at(x=0.0, y=0.5, vx=0.0, vy=-0.1, angle=0.0, w=0.0, left=0.0, right=0.0):
+        return slow_descent(np.array([x, y, vx, vy, angle, w, left, right], dtype=np.float32)).tolist()
+
+    for legs in ((1.0, 0.0), (0.0, 1.0), (1.0, 1.0)):  # tilted and turning, but on the ground: no lateral engine
+        assert at(vy=-0.02, angle=0.2, w=0.1, left=legs[0], right=legs[1]) == [-1.0, 0.0]  # resting: main engine off
+        assert at(vy=-0.06, angle=0.2, w=0.1, left=legs[0], right=legs[1]) == pytest.approx([0.72, 0.0])  # still sinking: cushion by 12 x speed
+    # far right of the pad and drifting away, it leans towards the pad by at most 0.3 rad: leaning that much already, it holds the lean
+    assert at(x=2.0, vx=1.0, angle=0.3)[1] == pytest.approx(0.0, abs=1e-6)
+    assert at(x=2.0, vx=1.0, angle=0.0)[1] == -1.0  # upright: full lateral thrust into the lean
+    # the sink rate it holds is 0.04 + 0.12 x height, and 0.04 below the pad's height (over lower ground): there, the hover command
+    assert at(y=0.5, vy=-0.1)[0] == pytest.approx(0.25) and at(y=-0.2, vy=-0.04)[0] == pytest.approx(0.25)
 
 def test_unknown_env_has_no_baseline():
     with pytest.raises(ValueError, match="no baseline for 'CartPole-v1'.*--baseline module:function"):
@@ -191,5 +235,81 @@ def test_an_episode_that_never_ends_is_an_error_not_a_hang(monkeypatch):
 
     monkeypatch.setattr(baselines, "EPISODE_LIMIT", 50)
     assert len(rollout(gym.wrappers.TimeLimit(PendulumEnv(), 50), BASELINES["Pendulum-v1"], 0)) == 50  # as long as the limit: fine
+    endless = PendulumEnv()  # no TimeLimit, and Pendulum never terminates
+    steps = []
+
+    def counted_step(action, step=endless.step):
+        steps.append(action)
+        return step(action)
+
+    endless.step = counted_step
     with pytest.raises(ValueError, match=r"^the episode from reset seed 3 did not end within 50 steps; give the env a time limit"):
-        rollout(PendulumEnv(), BASELINES["Pendulum-v1"], 3)  # no TimeLimit, and Pendulum never terminates
+        rollout(endless, BASELINES["Pendulum-v1"], 3)
+    assert len(steps) == 50
+
+
+def test_rollout_resets_a_stateful_baseline_before_every_episode():
+    class Accumulating:  # its action depends on every observation since its last reset
+        def __init__(self):
+            self.total, self.resets = 0.0, 0
+
+        def reset(self):
+            self.total, self.resets = 0.0, self.resets + 1
+
+        def __call__(self, obs):
+            self.total += float(obs[2])
+            return np.array([np.clip(0.1 * self.total, -2.0, 2.0)], dtype=np.float32)
+
+    env = make_env("Pendulum-v1")
+    baseline = Accumulating()
+    first = rollout(env, baseline, seed=5)
+    second = rollout(env, baseline, seed=5)
+    env.close()
+    assert baseline.resets == 2
+    np.testing.assert_array_equal(first, second)  # the second episode did not start from the first one's total
+
+
+def _number(text: str) -> float:
+    return float(text.replace("\u2212", "-").replace(",", ""))
+
+
+def _printed_figures(text: str) -> dict[str, float]:
+    """Mean return, its std and the reward per step, as `python -m envs.baselines` prints them or BENCHMARKS.md quotes them."""
+    mean, std = re.search(r"([-\u2212]?[\d,.]+) ± ([\d,.]+)", text).groups()
+    per_step = re.search(r"([-\u2212]?[\d.]+),? reward per step|reward per step +(-?[\d.]+)", text).groups()
+    return {"mean": _number(mean), "std": _number(std), "per_step": _number(per_step[0] or per_step[1])}
+
+
+def _documented_figures(benchmarks: str, marker: str) -> dict[str, float]:
+    """The figures after ``marker`` in BENCHMARKS.md: a row of its baselines table, or the prose after a command."""
+    at = benchmarks.index(marker)
+    if marker.startswith("|"):  # | env | baseline | mean ± std | min / max | reward per step | episode length |
+        cells = [cell.strip() for cell in benchmarks[benchmarks.rindex("\n", 0, at) : benchmarks.index("\n", at)].split("|")]
+        mean, std = cells[3].split(" ± ")
+        return {"mean": _number(mean), "std": _number(std), "per_step": _number(cells[5])}
+    return _printed_figures(benchmarks[at : at + 300])
+
+
+# (the env, its baseline, how BENCHMARKS.md finds the figures: a row of the baselines table or the command before them)
+DOCUMENTED_BASELINES = [
+    ("Pendulum-v1", "", "| `pendulum_swing_up`", 20),
+    ("LunarLanderContinuous-v3", "", "| `lunar_lander_slow_descent`", 20),
+    ("LunarLanderContinuous-v3", "envs.lunar_lander:lunar_lander_expert", "| Gymnasium's heuristic", 20),
+    ("Walker2DBulletEnv-v0", "", "`python -m envs.baselines --env-id Walker2DBulletEnv-v0 --episodes 10`", 10),
+    ("JetRacerTrack-v0", "", "`python -m envs.baselines --env-id JetRacerTrack-v0 --episodes 3`", 3),
+]
+
+
+@pytest.mark.parametrize("env_id, spec, marker, episodes", DOCUMENTED_BASELINES, ids=[f"{e}{'-expert' if s else ''}" for e, s, _, _ in DOCUMENTED_BASELINES])
+def test_the_baseline_figures_in_benchmarks_are_what_the_baselines_do_now(env_id, spec, marker, episodes, capsys):
+    """Every regret in BENCHMARKS.md is measured against these baselines: a change to a controller or to
+    an env that moves its return must come with new figures. Within 0.5 % (1 % for the two PyBullet envs,
+    whose physics and camera could round differently on another CPU); measured here, they agree to the digit."""
+    benchmarks = (ROOT / "BENCHMARKS.md").read_text()
+    documented = _documented_figures(benchmarks, marker)
+    baselines.main(["--env-id", env_id, "--episodes", str(episodes), *(["--baseline", spec] if spec else [])])
+    measured = _printed_figures(capsys.readouterr().out)
+    tolerance = 0.01 if "Bullet" in env_id or "JetRacer" in env_id else 0.005
+    assert measured["mean"] == pytest.approx(documented["mean"], rel=tolerance, abs=0.1), (measured, documented)
+    assert measured["per_step"] == pytest.approx(documented["per_step"], rel=tolerance, abs=0.001), (measured, documented)
+    assert measured["std"] == pytest.approx(documented["std"], rel=0.1, abs=0.1), (measured, documented)

@@ -74,6 +74,35 @@ def test_progress_wraps_across_the_start_line():
         TrackSpec(radius=0.2, lane_width=0.5)
 
 
+
+@pytest.mark.parametrize("clockwise", [False, True])
+def test_the_drawn_lane_tape_and_floor_are_where_the_projection_puts_them(clockwise):
+    track = TrackSpec(straight_length=1.5, radius=0.8, lane_width=0.4, tape_width=0.05, margin=0.6, clockwise=clockwise)
+    metres = 0.01  # per pixel
+    image = track.texture(metres)
+    half_x, half_y = 0.75 + 0.8 + 0.2 + 0.6, 0.8 + 0.2 + 0.6  # the loop, half the lane and the margin on every side
+    assert image.shape == (round(2 * half_y / metres), round(2 * half_x / metres), 3)
+    rng = np.random.default_rng(1)
+    seen = {"lane": 0, "tape": 0, "floor": 0}
+    for row, col in zip(rng.integers(0, image.shape[0], 3000), rng.integers(0, image.shape[1], 3000)):
+        x, y = (col + 0.5) * metres - half_x, half_y - (row + 0.5) * metres  # row 0 at +y
+        offset = abs(track.project(x, y)[1])
+        if min(abs(offset - 0.15), abs(offset - 0.2)) < 1e-6:
+            continue  # exactly on an edge: either colour is right
+        colour = tuple(image[row, col])
+        if offset <= 0.15:
+            assert colour == (38, 38, 42), (x, y, offset)
+            seen["lane"] += 1
+        elif offset <= 0.2:
+            assert colour == (235, 235, 235), (x, y, offset)
+            seen["tape"] += 1
+        else:
+            tile = (math.floor(x / 0.3) + math.floor(y / 0.3)) % 2  # 0.3 m squares of two greys
+            if min(abs(x / 0.3 - round(x / 0.3)), abs(y / 0.3 - round(y / 0.3))) > 1e-6:
+                assert colour == ((196,) * 3 if tile else (178,) * 3), (x, y)
+            seen["floor"] += 1
+    assert min(seen.values()) > 100, seen
+
 def drive_baseline(env, steps, seed=0):
     baseline = get_baseline("JetRacerTrack-v0")
     obs, info = env.reset(seed=seed)
@@ -100,12 +129,15 @@ def test_baseline_laps_without_leaving_the_lane_and_laps_are_counted(clockwise):
     mean_speed = np.mean([i["speed"] for i in infos[len(infos) // 3 :]])
     assert lap_time == pytest.approx(env.track.length / mean_speed, rel=0.05)
     assert 12.0 < lap_time < 15.5  # measured 13.75 s; the paper's car: 13.5 s
+    # from s = 0, the distance driven is the laps plus where the car is now; it never points more than 0.2 rad off the lane
+    assert last["progress"] == pytest.approx(last["lap_count"] * env.track.length + last["s"])
+    assert max(abs(i["heading_error"]) for i in infos) < 0.25  # measured 0.197 and 0.198, across the wrap at +-pi
 
 
 def test_the_lane_follower_steers_by_pd_and_forgets_its_error_when_it_loses_the_lane():
-    def lane_at(columns):
+    def lane_at(columns, fraction=1.0):
         mask = np.zeros(MASK_SHAPE, dtype=np.float32)
-        mask[:, columns] = 1.0
+        mask[:, columns] = fraction
         return np.concatenate([mask.ravel(), [0.0, 0.0]]).astype(np.float32)
 
     follower = LaneFollower()
@@ -118,27 +150,82 @@ def test_the_lane_follower_steers_by_pd_and_forgets_its_error_when_it_loses_the_
     assert lost.tolist() == [0.0, THROTTLE_ACTION]  # straight and slow
     # after the gap, proportional only: the error from before it would have kicked the wheel by KD * 3/7
     assert follower(centred)[0] == pytest.approx(0.0)
+    follower(right)
+    follower.reset()  # a new episode forgets the error just as a gap does
+    assert follower(centred)[0] == pytest.approx(0.0)
+    follower(right)
+    # under one cell's worth of lane in the look-ahead rows (6 rows x 2 cells x 0.08 = 0.96) is no lane seen
+    assert follower(lane_at([6, 7], fraction=0.08)).tolist() == [0.0, THROTTLE_ACTION]
+    assert follower(lane_at([6, 7], fraction=0.09))[0] == pytest.approx(0.0), "0.09 makes 1.08: seen, centred, no rate after the gap"
 
 
-def test_backward_crossing_uncounts_a_lap():
+def test_backward_crossing_uncounts_a_lap_and_the_lap_it_was_timing():
     env = JetRacerTrackEnv(random_start=False)
     env.reset(seed=0)
-    env._count_laps(0.05, -0.1)
-    assert env._laps == -1 and env._lap_started is None
-    env._count_laps(env.track.length - 0.05, 0.1)
-    assert env._laps == 0
+    length = env.track.length
+    env._count_laps(length - 0.05, 0.1)  # forwards over the line: lap 1, its clock starts
+    env._time = 3.0
+    env._count_laps(0.05, -0.1)  # back over it
+    assert env._laps == 0 and env._lap_started is None
+    env._time = 5.0
+    env._count_laps(length - 0.05, 0.1)  # forwards again: counted, but 2 s is no lap time
+    assert env._laps == 1 and env._lap_times == [] and env._lap_started == 5.0
+    env._time = 18.0
+    env._count_laps(length - 0.05, 0.1)
+    assert env._laps == 2 and env._lap_times == [13.0]
     env.close()
 
+
+def test_drive_clamps_the_steering_and_brakes_to_rest_below_the_throttle_deadband():
+    first, second = JetRacerTrackEnv(random_start=False), JetRacerTrackEnv(random_start=False)
+    for env in (first, second):
+        env.reset(seed=0)
+    first.drive(5.0, 0.6)  # a raw command past full lock steers at full lock
+    second.drive(1.0, 0.6)
+    np.testing.assert_array_equal(first._state, second._state)
+    second.close()
+    car = first.car
+    for _ in range(60):  # 3 s, ten speed lags: at the speed throttle 0.6 asks for
+        first.drive(0.0, 0.6)
+    assert first._state[3] == pytest.approx(car.max_speed * (0.6 - car.throttle_deadband) / (1 - car.throttle_deadband), rel=1e-3)
+    speeds = []
+    for throttle in [0.0] * 30 + [0.1] * 30:  # STOP's 0, then a throttle inside the deadband
+        first.drive(0.0, throttle)
+        speeds.append(first._state[3])
+    first.close()
+    assert min(speeds) >= 0.0 and speeds[-1] < 1e-4, "it brakes to rest, and never backs up"
+
+
+
+def test_a_steady_turn_follows_the_kinematic_bicycles_circle():
+    env = JetRacerTrackEnv(random_start=False)
+    env.reset(seed=0)
+    for _ in range(60):  # 3 s: the steering and speed lags settle
+        env.drive(0.6, 0.6)
+    points = []
+    for _ in range(40):  # 2 s at 1.25 m/s: most of a circle
+        env.drive(0.6, 0.6)
+        points.append(env._state[:2].copy())
+    env.close()
+    x, y = np.array(points).T
+    cx, cy, c = np.linalg.lstsq(np.c_[2 * x, 2 * y, np.ones_like(x)], x**2 + y**2, rcond=None)[0]  # the circle through them
+    radius = math.sqrt(c + cx**2 + cy**2)
+    np.testing.assert_allclose(np.hypot(x - cx, y - cy), radius, atol=1e-6)
+    # wheelbase / tan(steering angle); one Euler step per control period would be 4e-4 too wide, its five substeps 1.6e-5
+    assert radius == pytest.approx(env.car.wheelbase / math.tan(0.6 * env.car.max_steering_angle), rel=1e-4)
 
 def test_leaving_the_lane_terminates_with_the_penalty():
     env = make_env("JetRacerTrack-v0")
-    env.reset(seed=1)
+    _, info = env.reset(seed=1)
+    ctes = [info["cte"]]
     for _ in range(200):
         _, reward, terminated, truncated, info = env.step(np.array([1.0, 1.0]))  # full left, full throttle
+        ctes.append(info["cte"])
         if terminated:
             break
     env.close()
-    assert terminated and reward == -10.0 and abs(info["cte"]) > 0.25
+    assert terminated and reward == -10.0 and abs(ctes[-1]) > 0.25
+    assert max(abs(cte) for cte in ctes[:-1]) <= 0.25, "at the first step whose centre is past the lane's edge"
 
 
 def test_same_seed_same_episode():
@@ -222,8 +309,25 @@ def test_action_mapping():
     assert action_to_commands(np.array([-3.0, 0.0]), mapping) == (-1.0, pytest.approx(0.525))
     with pytest.raises(ValueError, match="finite"):
         action_to_commands(np.array([np.nan, 0.0]))
-    with pytest.raises(ValueError, match="invalid action mapping"):
-        ActionMapping(min_throttle=0.7, max_throttle=0.6)
+    assert action_to_commands(np.array([0.5, -1.0]), ActionMapping(max_steering=0.4)) == (pytest.approx(0.2), 0.45)  # a servo limited to 40 %
+    for bad in (dict(min_throttle=0.7, max_throttle=0.6), dict(min_throttle=-0.1), dict(max_throttle=1.1), dict(max_steering=0.0), dict(max_steering=1.5)):
+        with pytest.raises(ValueError, match="invalid action mapping"):
+            ActionMapping(**bad)
+
+
+def test_the_lane_mask_is_the_share_of_dark_pixels_of_a_bgr_frame_in_each_cell_below_the_crop():
+    frame = np.full((112, 112, 3), 255, dtype=np.uint8)
+    frame[:32] = 0  # above the crop: however dark, it is no lane
+    frame[32:, ::2] = 90  # every other column at the threshold (a lane pixel), the rest one grey level above it
+    frame[32:, 1::2] = 91
+    mask = preprocess(frame, np.array([3.0, -7.0]))
+    np.testing.assert_allclose(mask[:-2], 0.5)  # each 8 x 8 cell half lane: the share, not one pixel's value
+    assert mask[-2:].tolist() == [1.0, -1.0], "the previous action, clipped to the policy's range"
+    # read as BGR: blue 200, green 50, red 100 is grey 82 (dark lane); read as RGB it would be 101
+    frame[32:] = (200, 50, 100)
+    np.testing.assert_array_equal(preprocess(frame, np.zeros(2))[:-2], 1.0)
+    with pytest.raises(ValueError, match="uint8"):
+        preprocess(frame.astype(np.float32), np.zeros(2))  # a float frame would threshold at 90 of 1.0
 
 
 def test_a_non_finite_action_or_command_is_refused_and_changes_nothing():
@@ -251,12 +355,17 @@ def test_impossible_tracks_cars_and_rates_are_refused():
     for bad in (dict(steering_lag=0.0), dict(wheelbase=-0.2), dict(throttle_deadband=1.0), dict(max_steering_angle=math.pi / 2), dict(camera_fov=math.nan), dict(speed_lag=math.nan)):
         with pytest.raises(ValueError, match="impossible car"):
             CarSpec(**bad)
-    with pytest.raises(ValueError, match="control_hz must be > 0"):
-        make_env("JetRacerTrack-v0", 0, control_hz=0.0)
+    for hz in (0.0, math.inf):  # an infinite rate is a zero time step
+        with pytest.raises(ValueError, match="control_hz must be > 0"):
+            make_env("JetRacerTrack-v0", 0, control_hz=hz)
+    with pytest.raises(ValueError, match="render_mode must be None or 'rgb_array', got 'human'"):
+        JetRacerTrackEnv(render_mode="human")
     with pytest.raises(ValueError, match="impossible track"):
         TrackSpec(radius=0.2)  # the lane (0.5 m wide) would cross the bend's centre
     with pytest.raises(ValueError, match="impossible track"):
         TrackSpec(margin=math.nan)  # not the first size: min() would have let a NaN there through
+    with pytest.raises(ValueError, match="impossible track"):
+        TrackSpec(lane_width=0.05, tape_width=0.03)  # the two edge tapes would overlap
 
 
 def test_the_track_passes_gymnasiums_env_checker_without_a_warning():
