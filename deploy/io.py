@@ -224,7 +224,7 @@ class Gamepad:
     """A Linux joystick device (/dev/input/jsN) read without extra dependencies.
 
     Events are 8 bytes: time (ms, u32), value (i16), type (u8: 1 button, 2 axis, 0x80 initial state),
-    number (u8). Axes are scaled to [-1, 1].
+    number (u8). Axes are scaled to [-1, 1]. A read that ends inside an event keeps its start for the next.
     """
 
     EVENT = struct.Struct("<IhBB")
@@ -242,6 +242,7 @@ class Gamepad:
             raise ValueError(f"{path!r} is not a joystick device (/dev/input/jsN)")
         self.num_axes, self.num_buttons = shape
         self.presses: set = set()  # buttons pressed since was_pressed() last asked: a tap between two polls counts
+        self._partial = b""  # the start of an event a read split, completed by the next read
         self.path = path
         self.axes: dict = {}
         self.buttons: dict = {}
@@ -266,7 +267,10 @@ class Gamepad:
                 raise GamepadLost(f"gamepad {self.path!r} lost ({err.strerror})") from None
             if not data:
                 return
-            for offset in range(0, len(data) - len(data) % self.EVENT.size, self.EVENT.size):
+            data = self._partial + data
+            whole = len(data) - len(data) % self.EVENT.size
+            self._partial = data[whole:]
+            for offset in range(0, whole, self.EVENT.size):
                 _, value, kind, number = self.EVENT.unpack_from(data, offset)
                 kind &= 0x7F
                 if kind == 1:

@@ -374,9 +374,17 @@ def test_gamepad_events_estop_and_takeover(tmp_path, monkeypatch):
     pad.poll()
     assert pad.axes[4] == pytest.approx(1.0) and pad.axes[0] == pytest.approx(-0.5, abs=1e-4) and pad.buttons[0] is False
     assert pad.axes[1] == -1.0  # the one value past -1 the kernel reports, -32768, is -1 too
-    os.write(writer_fd, event.pack(5, 1, 1, 0))
+    press = event.pack(5, 1, 1, 0)
+    os.write(writer_fd, press[:5])  # a read that splits an event: nothing yet, and nothing lost
     pad.poll()
-    assert pad.buttons[0] is True
+    assert pad.buttons[0] is False
+    os.write(writer_fd, press[5:] + event.pack(6, -32767, 2, 4)[:3])
+    pad.poll()
+    assert pad.buttons[0] is True and pad.axes[4] == pytest.approx(1.0)
+    os.write(writer_fd, event.pack(6, -32767, 2, 4)[3:])
+    pad.poll()
+    assert pad.axes[4] == pytest.approx(-1.0)
+    assert pad.was_pressed(0) and pad.was_pressed(0), "a button held down stays pressed"
     pad.close()
     os.close(writer_fd)
 
