@@ -418,6 +418,18 @@ def test_a_gamepad_without_the_chosen_button_or_axis_is_refused_before_the_car_i
     assert armed
 
 
+def test_a_gamepad_refuses_a_negative_button_or_axis_too_and_closes_its_device(tmp_path, monkeypatch):
+    from deploy import io
+
+    path = fifo_gamepad(tmp_path, monkeypatch)
+    open_fds = len(os.listdir("/proc/self/fd"))
+    gamepad = io.Gamepad(path)  # the options refuse one; code that calls require() itself may not
+    with pytest.raises(ValueError, match=r"has buttons 0-10 and axes 0-7: no button -1, axis -2$"):
+        gamepad.require({"button": -1}, {"axis": -2})
+    gamepad.close()
+    assert len(os.listdir("/proc/self/fd")) == open_fds, "and closing it closes its device"
+
+
 def test_joystick_shape_asks_the_driver_for_its_axes_and_buttons(monkeypatch):
     import fcntl
 

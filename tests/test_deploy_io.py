@@ -1,5 +1,6 @@
 """deploy.io: the OpenCV cameras (frame conversion, a recorded video replayed, the reader thread's shutdown) and the simulated world."""
 
+import queue
 import subprocess
 import sys
 import time
@@ -47,6 +48,48 @@ def test_the_reader_thread_keeps_the_newest_frame_and_is_joined_before_the_captu
     assert not camera._thread.is_alive()
 
 
+
+class ScriptedCapture:
+    """A capture whose first frame is ready at open, then whose reads answer what the test puts in ``reads``."""
+
+    def __init__(self, *args):
+        self.reads = queue.Queue()
+        self.first = True
+
+    def isOpened(self):
+        return True
+
+    def read(self):
+        if self.first:
+            self.first = False
+            return True, np.full((120, 160, 3), 10, dtype=np.uint8)
+        level = self.reads.get(timeout=10)
+        return (False, None) if level is None else (True, np.full((120, 160, 3), level, dtype=np.uint8))
+
+    def release(self):
+        pass
+
+
+def test_a_live_camera_has_its_first_frame_at_open_and_reads_on_after_a_missed_frame(monkeypatch):
+    monkeypatch.setattr(cv2, "VideoCapture", ScriptedCapture)
+    camera = io.open_camera("usb:0")
+    frame, captured = camera.read()  # before the reader thread has read anything: the frame read at open
+    assert frame is not None and frame.mean() == 10 and camera.frames_read == 1 and captured > 0
+    for level in (None, None, 100):  # two reads that deliver nothing, as a USB camera may, then a frame
+        camera.capture.reads.put(level)
+    deadline = time.monotonic() + 10
+    while camera.frames_read < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert camera.frames_read == 2 and camera.read()[0].mean() == 100
+    camera.capture.reads.put(None)  # lets the reader's last read return, so that close() can join it
+    camera.close()
+    assert not camera._thread.is_alive()
+
+
+def test_the_simulated_camera_needs_the_simulated_car():
+    with pytest.raises(ValueError, match="camera 'sim' needs the simulator: use it with --port mockjetracer://"):
+        io.open_camera("sim")
+
 def test_frames_become_three_channel_bgr_at_the_policys_size():
     grey = np.tile(np.arange(160, dtype=np.uint8), (120, 1))
     frame = io.to_policy_frame(grey)
@@ -55,6 +98,7 @@ def test_frames_become_three_channel_bgr_at_the_policys_size():
     bgra = np.zeros((112, 112, 4), dtype=np.uint8)
     bgra[..., 0], bgra[..., 3] = 50, 255
     assert np.array_equal(io.to_policy_frame(bgra), np.stack([np.full((112, 112), v, np.uint8) for v in (50, 0, 0)], axis=2))
+    assert np.array_equal(io.to_policy_frame(grey[..., None]), frame)  # grey with a channel axis of one
     for bad in (np.zeros((112, 112, 3), np.uint16), np.zeros((112, 112, 2), np.uint8), np.zeros(5, np.uint8)):
         with pytest.raises(ValueError, match="expected 8-bit grey, BGR or BGRA"):
             io.to_policy_frame(bad)

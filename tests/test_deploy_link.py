@@ -175,6 +175,43 @@ def test_a_frame_with_a_good_crc_but_a_bad_header_is_refused_and_changes_nothing
     assert c.armed and (c.steering, c.throttle) == (0.1, 0.3)
 
 
+
+def test_the_mock_controller_keeps_each_rule_of_the_documented_state_machine():
+    """docs/serial_protocol.md, "Controller behaviour", rule by rule: what firmware written to it must do too."""
+    c = MockController(now=10.0)
+    (info,) = send(c, p.Message(p.HELLO, 1), 10.0)
+    assert (info.type, info.fields) == (p.INFO, (p.VERSION, 1, 0, 50, 2000))  # the reference values
+    for seq, fields in ((2, (49, 500)), (3, (2001, 500)), (4, (250, 1001))):  # a watchdog outside 50-2000 ms, a cap over 1000
+        (nack,) = send(c, p.Message(p.ARM, seq, fields), 10.0)
+        assert nack.fields == (seq, p.ARM, p.OUT_OF_RANGE) and not c.armed
+    (ack,) = send(c, p.Message(p.ARM, 5, (2000, 1000)), 10.0)  # both limits are allowed
+    assert ack.fields[:2] == (5, p.ARM) and ack.fields[4] == p.STATUS_ARMED
+    send(c, p.Message(p.ARM, 6, (250, 400)), 10.0)
+    send(c, p.Message(p.DRIVE, 7, (300, -900)), 10.01)
+    assert (c.steering, c.throttle) == (0.3, -0.4)  # the cap holds both ways
+    (nack,) = send(c, p.Message(p.DRIVE, 8, (0, 1001)), 10.02)
+    assert nack.fields == (8, p.DRIVE, p.OUT_OF_RANGE) and (c.steering, c.throttle) == (0.3, -0.4)
+    (ack,) = send(c, p.Message(p.ARM, 9, (250, 400)), 10.03)  # re-arming while driving starts from neutral
+    assert (c.steering, c.throttle) == (0.0, 0.0) and ack.fields[2:4] == (0, 0)
+    # the watchdog is checked before a frame is acted on: a DRIVE 0.3 s after the last command finds it tripped
+    (trip, nack) = send(c, p.Message(p.DRIVE, 10, (0, 300)), 10.33)
+    assert trip.fields[1] == 0 and trip.fields[4] == p.STATUS_WATCHDOG_TRIPPED and nack.fields == (10, p.DRIVE, p.NOT_ARMED)
+    (ack,) = send(c, p.Message(p.ARM, 11, (250, 400)), 10.4)
+    assert ack.fields[4] == p.STATUS_ARMED, "ARM clears the watchdog flag"
+    (ack,) = send(c, p.Message(p.ESTOP, 12), 10.41)
+    assert ack.fields[4] == p.STATUS_ESTOP_LATCHED
+    send(c, p.Message(p.ARM, 13, (250, 400)), 10.42)
+    (ack,) = send(c, p.Message(p.DISARM, 14), 10.46)
+    assert not c.armed and ack.fields[4] == 0 and ack.fields[5] == 460, "uptime counts from power-up, in ms"
+    c.poll(13.5)
+    assert frames(c) == [], "no unsolicited telemetry while disarmed"
+    (nack,) = send(c, p.Message(p.DRIVE, 15, (0, 300)), 13.6)
+    assert nack.fields == (15, p.DRIVE, p.NOT_ARMED)
+    seqs = []
+    for _ in range(300):
+        seqs += [f.seq for f in send(c, p.Message(p.HELLO, 16), 14.0)]
+    assert seqs == [(seqs[0] + i) % 256 for i in range(300)], "its own frames count up, wrapping at 256"
+
 @pytest.fixture
 def mock_link():
     register_url_scheme()
@@ -554,6 +591,38 @@ def test_pty_link_survives_an_unplug_and_never_rearms_itself():
         link.close()
         pty.close()
 
+
+
+def test_the_pty_controller_runs_its_watchdog_and_telemetry_on_its_own_clock():
+    pty = PtyController()
+    port = serial.Serial(pty.path, timeout=0.05)
+    try:
+        port.write(p.encode(p.Message(p.ARM, 1, (50, 500))))  # and then silence from the host
+        received, deadline = [], time.monotonic() + 2.0
+        decoder = p.FrameDecoder()
+        while time.monotonic() < deadline and not any(f.fields[4] & p.STATUS_WATCHDOG_TRIPPED for f in received):
+            received += [f for f in decoder.feed(port.read(64)) if f.type == p.TELEMETRY]
+        assert received[0].fields[:2] == (1, p.ARM)
+        assert received[-1].fields[1] == 0 and received[-1].fields[4] == p.STATUS_WATCHDOG_TRIPPED, "it trips with no frame to wake it"
+        assert not pty.controller.armed
+    finally:
+        port.close()
+        pty.close()
+
+
+def test_the_mock_url_port_drops_pending_output_on_reset_and_refuses_use_once_closed():
+    register_url_scheme()
+    port = serial.serial_for_url("mockjetracer://", timeout=0.05)
+    port.write(p.encode(p.Message(p.HELLO, 1)))
+    assert port.in_waiting > 0
+    port.reset_input_buffer()
+    assert port.in_waiting == 0 and port.read(64) == b""
+    port.write(p.encode(p.Message(p.HELLO, 2)))
+    assert [m.type for m in p.FrameDecoder().feed(port.read(64))] == [p.INFO]
+    port.close()
+    for use in (lambda: port.write(p.encode(p.Message(p.HELLO, 3))), lambda: port.read(1)):
+        with pytest.raises(OSError, match="port closed"):
+            use()
 
 def test_estop_with_the_port_down_says_so_and_never_raises():
     pty = PtyController()
