@@ -46,7 +46,6 @@ def test_pendulum_baseline_swings_up_slowly():
     assert -1.6 < per_step < -0.6
 
 
-
 def test_pendulum_baseline_starts_a_swing_from_rest_pumps_at_half_torque_and_catches_near_the_top():
     swing_up = BASELINES["Pendulum-v1"]
 
@@ -72,6 +71,7 @@ def test_pendulum_baseline_starts_a_swing_from_rest_pumps_at_half_torque_and_cat
     assert len(pumping) > 30 and max(pumping) == 1.0, "it pumps with half the 2 N m the motor has, the deliberate weakness"
     assert max(costs[-20:]) < 0.05, "and ends balanced upright"
 
+
 def test_lander_baseline_lands_and_is_beaten_by_the_expert():
     env = make_env("LunarLanderContinuous-v3")
     baseline = [rollout(env, BASELINES["LunarLanderContinuous-v3"], seed) for seed in range(3)]
@@ -83,7 +83,6 @@ def test_lander_baseline_lands_and_is_beaten_by_the_expert():
     expert_returns = np.array([t.sum() for t in expert])
     assert np.all((150 < baseline_returns) & (baseline_returns < 250)), baseline_returns
     assert np.all(expert_returns > baseline_returns + 30), (expert_returns, baseline_returns)
-
 
 
 def test_lander_baseline_sinks_at_its_reference_leans_at_most_0_3_rad_and_stops_steering_on_either_leg():
@@ -100,6 +99,7 @@ def test_lander_baseline_sinks_at_its_reference_leans_at_most_0_3_rad_and_stops_
     assert at(x=2.0, vx=1.0, angle=0.0)[1] == -1.0  # upright: full lateral thrust into the lean
     # the sink rate it holds is 0.04 + 0.12 x height, and 0.04 below the pad's height (over lower ground): there, the hover command
     assert at(y=0.5, vy=-0.1)[0] == pytest.approx(0.25) and at(y=-0.2, vy=-0.04)[0] == pytest.approx(0.25)
+
 
 def test_unknown_env_has_no_baseline():
     with pytest.raises(ValueError, match="no baseline for 'CartPole-v1'.*--baseline module:function"):

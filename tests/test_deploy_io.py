@@ -48,7 +48,6 @@ def test_the_reader_thread_keeps_the_newest_frame_and_is_joined_before_the_captu
     assert not camera._thread.is_alive()
 
 
-
 class ScriptedCapture:
     """A capture whose first frame is ready at open, then whose reads answer what the test puts in ``reads``."""
 
@@ -89,6 +88,7 @@ def test_a_live_camera_has_its_first_frame_at_open_and_reads_on_after_a_missed_f
 def test_the_simulated_camera_needs_the_simulated_car():
     with pytest.raises(ValueError, match="camera 'sim' needs the simulator: use it with --port mockjetracer://"):
         io.open_camera("sim")
+
 
 def test_frames_become_three_channel_bgr_at_the_policys_size():
     grey = np.tile(np.arange(160, dtype=np.uint8), (120, 1))

@@ -175,7 +175,6 @@ def test_a_frame_with_a_good_crc_but_a_bad_header_is_refused_and_changes_nothing
     assert c.armed and (c.steering, c.throttle) == (0.1, 0.3)
 
 
-
 def test_the_mock_controller_keeps_each_rule_of_the_documented_state_machine():
     """docs/serial_protocol.md, "Controller behaviour", rule by rule: what firmware written to it must do too."""
     c = MockController(now=10.0)
@@ -211,6 +210,7 @@ def test_the_mock_controller_keeps_each_rule_of_the_documented_state_machine():
     for _ in range(300):
         seqs += [f.seq for f in send(c, p.Message(p.HELLO, 16), 14.0)]
     assert seqs == [(seqs[0] + i) % 256 for i in range(300)], "its own frames count up, wrapping at 256"
+
 
 @pytest.fixture
 def mock_link():
@@ -592,7 +592,6 @@ def test_pty_link_survives_an_unplug_and_never_rearms_itself():
         pty.close()
 
 
-
 def test_the_pty_controller_runs_its_watchdog_and_telemetry_on_its_own_clock():
     pty = PtyController()
     port = serial.Serial(pty.path, timeout=0.05)
@@ -623,6 +622,7 @@ def test_the_mock_url_port_drops_pending_output_on_reset_and_refuses_use_once_cl
     for use in (lambda: port.write(p.encode(p.Message(p.HELLO, 3))), lambda: port.read(1)):
         with pytest.raises(OSError, match="port closed"):
             use()
+
 
 def test_estop_with_the_port_down_says_so_and_never_raises():
     pty = PtyController()

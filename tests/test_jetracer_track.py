@@ -74,7 +74,6 @@ def test_progress_wraps_across_the_start_line():
         TrackSpec(radius=0.2, lane_width=0.5)
 
 
-
 @pytest.mark.parametrize("clockwise", [False, True])
 def test_the_drawn_lane_tape_and_floor_are_where_the_projection_puts_them(clockwise):
     track = TrackSpec(straight_length=1.5, radius=0.8, lane_width=0.4, tape_width=0.05, margin=0.6, clockwise=clockwise)
@@ -102,6 +101,7 @@ def test_the_drawn_lane_tape_and_floor_are_where_the_projection_puts_them(clockw
                 assert colour == ((196,) * 3 if tile else (178,) * 3), (x, y)
             seen["floor"] += 1
     assert min(seen.values()) > 100, seen
+
 
 def drive_baseline(env, steps, seed=0):
     baseline = get_baseline("JetRacerTrack-v0")
@@ -196,7 +196,6 @@ def test_drive_clamps_the_steering_and_brakes_to_rest_below_the_throttle_deadban
     assert min(speeds) >= 0.0 and speeds[-1] < 1e-4, "it brakes to rest, and never backs up"
 
 
-
 def test_a_steady_turn_follows_the_kinematic_bicycles_circle():
     env = JetRacerTrackEnv(random_start=False)
     env.reset(seed=0)
@@ -213,6 +212,7 @@ def test_a_steady_turn_follows_the_kinematic_bicycles_circle():
     np.testing.assert_allclose(np.hypot(x - cx, y - cy), radius, atol=1e-6)
     # wheelbase / tan(steering angle); one Euler step per control period is 3.9e-4 too wide (measured), its five substeps 1.6e-5
     assert radius == pytest.approx(env.car.wheelbase / math.tan(0.6 * env.car.max_steering_angle), rel=1e-4)
+
 
 def test_leaving_the_lane_terminates_with_the_penalty():
     env = make_env("JetRacerTrack-v0")
