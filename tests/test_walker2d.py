@@ -53,6 +53,11 @@ def test_bad_files_give_clear_errors_and_lose_nothing(tmp_path):
     corrupt.write_bytes(WEIGHTS.read_bytes()[:300])
     with pytest.raises(ValueError, match="not readable policy weights"):
         Walker2DBaseline(corrupt)
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"not a torch file" * 8)
+    with pytest.raises(ValueError, match="garbage.pt is not readable policy weights") as raised:
+        load_policy(garbage)
+    assert "\n" not in str(raised.value) and "weights_only" not in str(raised.value), "one line, without torch's advice to load it unsafely"
     other = tmp_path / "other.pt"
     torch.save({"format": "something-else"}, other)
     with pytest.raises(ValueError, match="not a jirl-policy-weights-v1 file"):
@@ -74,6 +79,14 @@ def test_bad_files_give_clear_errors_and_lose_nothing(tmp_path):
     torch.save({k: v for k, v in weights.items() if k != "policy"}, no_policy)
     with pytest.raises(ValueError, match="no_policy.pt is a damaged jirl-policy-weights-v1 file: it has no policy$"):
         load_policy(no_policy)
+    no_metadata = tmp_path / "no_metadata.pt"
+    torch.save({k: v for k, v in weights.items() if k != "metadata"}, no_metadata)
+    with pytest.raises(ValueError, match="no_metadata.pt is a damaged jirl-policy-weights-v1 file: it has no metadata$"):
+        load_policy(no_metadata)
+    short = tmp_path / "short.pt"  # one tensor missing: loading the rest would act with that layer's random init
+    torch.save({**weights, "policy": {k: v for k, v in weights["policy"].items() if k != "fc2.bias"}}, short)
+    with pytest.raises(ValueError, match="(?s)the weights do not fit the stated sizes.*fc2.bias"):
+        load_policy(short)
     assert corrupt.exists() and other.exists() and resized.exists() and no_policy.exists() and not (tmp_path / "out.pt").exists()
 
 
@@ -91,7 +104,17 @@ def test_export_round_trip_from_a_sac_checkpoint(tmp_path):
     with torch.no_grad():
         _, _, expected = actor.get_action(torch.from_numpy(obs).unsqueeze(0))
     np.testing.assert_allclose(baseline(obs), expected[0].numpy(), atol=1e-6)
+    assert not baseline.policy.training
+    # other bounds than Walker2D's [-1, 1]: tanh(mean) is mapped linearly onto [low, high]
+    low, high = np.array([-2.0, -1.0, 0.0, -0.5, 1.0, -3.0]), np.array([2.0, 0.0, 4.0, 0.5, 3.0, -1.0])
+    rescaled = tmp_path / "rescaled.pt"
+    torch.save({**torch.load(out, weights_only=True), "action_low": low.tolist(), "action_high": high.tolist()}, rescaled)
+    np.testing.assert_allclose(Walker2DBaseline(rescaled)(obs), low + (expected[0].numpy() + 1) / 2 * (high - low), atol=1e-5)
     saved = torch.load(checkpoint, weights_only=True)
+    v1 = tmp_path / "v1.cleanrl_model"  # a checkpoint from before the critics' storage changed still exports
+    torch.save({**saved, "format": "jirl-sac-checkpoint-v1"}, v1)
+    export(v1, tmp_path / "from_v1.pt")
+    np.testing.assert_allclose(Walker2DBaseline(tmp_path / "from_v1.pt")(obs), expected[0].numpy(), atol=1e-6)
     no_args, resized = tmp_path / "no_args.cleanrl_model", tmp_path / "resized.cleanrl_model"
     torch.save({k: v for k, v in saved.items() if k != "args"}, no_args)
     torch.save({**saved, "hidden_size": 8}, resized)
