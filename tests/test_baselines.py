@@ -137,6 +137,20 @@ def test_make_env_errors_and_lazy_pybullet_registration():
     walker.close()
 
 
+def test_make_env_seeds_the_action_space_with_seed_0_too():
+    """A user's random warm-up (env.action_space.sample()) repeats with its seed; 0 is a seed like any other."""
+
+    def draws(seed):
+        env = make_env("Pendulum-v1", seed=seed)
+        samples = np.array([env.action_space.sample() for _ in range(5)])
+        env.close()
+        return samples
+
+    for seed in (0, 7):
+        np.testing.assert_array_equal(draws(seed), draws(seed))
+    assert not np.array_equal(draws(0), draws(7))
+
+
 def test_make_env_names_a_missing_package_not_an_unknown_id(monkeypatch):
     import gymnasium as gym
 
