@@ -94,6 +94,32 @@ def test_deploy_checks_the_car_safety_settings():
     jetracer.Baseline(watchdog_ms=21)
 
 
+@pytest.mark.parametrize(
+    "cls, field, bad, good",
+    [
+        ("Baseline", "control_hz", math.inf, 100.0),  # a period of 0: no rate limit on the steering
+        ("Baseline", "max_throttle", 1.01, 1.0),
+        ("Baseline", "max_steering_rate", 0.0, 0.1),  # the wheel could never turn
+        ("Baseline", "watchdog_ms", 65536, 65535),  # the protocol's field is 16 bits
+        ("Baseline", "seed", 2**32, 2**32 - 1),
+        ("Run", "steps", 0, 1),
+        ("Baseline", "steps", 0, 1),
+        ("Train", "total_steps", 0, 1),
+        ("Train", "gradient_steps", 0, 1),
+    ],
+)
+def test_deploy_ranges_at_their_edges(cls, field, bad, good):
+    with pytest.raises(ValueError, match=f"--{field.replace('_', '-')} must be"):
+        getattr(jetracer, cls)(**{field: bad})
+    getattr(jetracer, cls)(**{field: good})
+
+
+def test_the_safety_filter_refuses_a_steering_step_of_zero_or_infinity():
+    for rate, period in ((0.0, 0.05), (8.0, 0.0), (math.inf, 0.05)):
+        with pytest.raises(ValueError, match="steering change per step must be > 0"):
+            jetracer.SafetyFilter(jetracer.ActionMapping(), max_steering_rate=rate, period=period)
+
+
 def test_deploy_train_refuses_a_checkpoint_that_is_no_file_path(tmp_path):
     for bad in ("", str(tmp_path), f"{tmp_path / 'new'}/"):  # before: "... holds an earlier training", or a failed first save
         with pytest.raises(ValueError, match=r"--checkpoint must be a file's path \(not empty, not a directory\)"):

@@ -1176,6 +1176,18 @@ def test_a_log_dir_that_cannot_be_made_is_a_one_line_error_before_the_car_is_arm
     assert (tmp_path / "afile").read_text() == "a user's file"
 
 
+def test_a_log_dir_is_checked_where_it_would_be_made(tmp_path, monkeypatch):
+    """The nearest part of --log-dir that exists must be a directory this process can write in and enter."""
+    assert jetracer.log_dir_problem(str(tmp_path / "runs" / "car")) is None
+    (tmp_path / "afile").write_text("")
+    assert jetracer.log_dir_problem(str(tmp_path / "afile" / "runs")) == f"{tmp_path / 'afile'} is not a directory"
+    asked = []
+    for denied in (os.W_OK, os.X_OK):  # root passes both checks on any mode: ask os.access through a stand-in
+        monkeypatch.setattr(jetracer.os, "access", lambda path, mode: asked.append(path) or not mode & denied)
+        assert jetracer.log_dir_problem(str(tmp_path / "runs" / "car")) == f"{tmp_path} is not writable"
+    assert asked == [str(tmp_path)] * 2
+
+
 def test_a_log_dir_lost_as_the_car_arms_stops_the_car_with_one_line(tmp_path, monkeypatch):
     def gone(log_dir, name):
         raise PermissionError(13, "Permission denied", log_dir)
