@@ -8,6 +8,8 @@ import signal
 import subprocess
 import sys
 import time
+import types
+from collections import deque
 from pathlib import Path
 from typing import Callable
 
@@ -621,9 +623,10 @@ def test_a_drive_ends_when_the_controller_restarts_unarmed(tmp_path, monkeypatch
     assert "baseline: error: the controller is no longer armed (it refused a command as not armed; did it restart?)" in err
 
 
-def stale_camera(monkeypatch, stale: Callable[[int], bool]) -> list:
-    """Make the car's simulated camera serve stale frames on the reads (counted from 1) where stale(n)
-    holds; train's shadow car, driven by the baseline, keeps fresh ones. Returns the list of reads."""
+def stale_camera(monkeypatch, stale: Callable[[int], bool], age: float = 1.0) -> list:
+    """Make the car's simulated camera serve frames captured `age` seconds earlier on the reads (counted
+    from 1) where stale(n) holds; train's shadow car, driven by the baseline, keeps fresh ones. Returns
+    the list of reads."""
     from deploy import io
 
     reads, real_read = [], io.SimWorld.read
@@ -633,7 +636,7 @@ def stale_camera(monkeypatch, stale: Callable[[int], bool]) -> list:
         if isinstance(self.controller, jetracer._NullController):
             return frame, captured
         reads.append(1)
-        return (frame, captured - 1.0) if stale(len(reads)) else (frame, captured)
+        return (frame, captured - age) if stale(len(reads)) else (frame, captured)
 
     monkeypatch.setattr(io.SimWorld, "read", read)
     return reads
@@ -682,6 +685,53 @@ def test_a_camera_that_fails_ends_the_run_at_once_saying_why(mode, tmp_path, mon
     assert mode == "train" or reported_steps(out, mode) == 30
     assert f"{mode}: error: camera 0 delivered a (480, 640) uint16 frame; expected 8-bit grey, BGR or BGRA; stopping" in err
     assert "no fresh camera frame" not in err and "Traceback" not in err
+    assert mode == "train" or "frames dropped 1\n" in out  # the frame that never came
+
+
+def test_a_frame_is_stale_past_two_periods_and_only_2_s_of_them_in_a_row_end_a_drive(tmp_path, monkeypatch, capsys):
+    def drive(steps):
+        rewards = jetracer.baseline(jetracer.Baseline(steps=steps, log_dir=str(tmp_path), watchdog_ms=2000))
+        return len(rewards), re.search(r"frames dropped (\d+)", capsys.readouterr().out).group(1)
+
+    stale_camera(monkeypatch, lambda n: True, age=0.06)  # 1.2 periods at 20 Hz: fresh enough to act on
+    assert drive(20) == (20, "0")
+    monkeypatch.undo()
+    stale_camera(monkeypatch, lambda n: True, age=0.15)  # 3 periods: the car waits, stopped
+    assert drive(20) == (0, "20")
+    monkeypatch.undo()
+    stale_camera(monkeypatch, lambda n: n % 31 != 0)  # 30 stale periods, one fresh frame, 30 stale, ...: never 2 s in a row
+    assert drive(100) == (3, "97")
+
+
+def test_the_gamepad_takes_over_the_steering_while_its_trigger_is_held_past_half():
+    session = object.__new__(jetracer.CarSession)  # only what human_action reads
+    session.args, session.stop_requested = jetracer.Baseline(takeover_axis=4, steering_axis=0), False
+    session.gamepad = types.SimpleNamespace(axes={})
+    assert session.human_action() is None  # an axis not moved yet reads as released
+    for trigger in (-1.0, 0.5):
+        session.gamepad.axes = {4: trigger, 0: 0.3}
+        assert session.human_action() is None
+    session.gamepad.axes = {4: 0.51, 0: 0.3}  # the stick right of centre steers right (steering + is left), at the lowest throttle
+    np.testing.assert_array_equal(session.human_action(), np.array([-0.3, -1.0], dtype=np.float32))
+    session.stop_requested = True
+    assert session.human_action() is None
+    session.stop_requested, session.gamepad = False, None
+    assert session.human_action() is None
+
+
+def test_a_late_period_does_not_make_the_next_ones_short():
+    """After a period that ran late (a slow read, a training pause), the loop waits a whole period again
+    rather than firing a burst of periods to catch up with the schedule."""
+    session = object.__new__(jetracer.CarSession)  # only what wait reads
+    session.period, session.periods = 0.05, deque(maxlen=10)
+    session._last_tick = time.monotonic() - 1.0
+    session._next_tick = session._last_tick  # a second behind: twenty periods' worth
+    session.wait()
+    assert session.periods[-1] >= 1.0
+    started = time.monotonic()
+    session.wait()
+    session.wait()
+    assert time.monotonic() - started >= 2 * 0.05 - 0.002 and min(list(session.periods)[1:]) >= 0.05 - 0.002
 
 
 def test_the_e_stop_is_read_while_the_frames_are_stale(tmp_path, monkeypatch, capsys):
