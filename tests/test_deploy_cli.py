@@ -734,6 +734,25 @@ def test_a_late_period_does_not_make_the_next_ones_short():
     assert time.monotonic() - started >= 2 * 0.05 - 0.002 and min(list(session.periods)[1:]) >= 0.05 - 0.002
 
 
+def test_the_loop_timing_and_each_lap_are_logged_once():
+    session = object.__new__(jetracer.CarSession)  # only what timing and log read
+    session.periods = deque([i / 1000 for i in range(100, 0, -1)], maxlen=2000)  # 1, 2, ..., 100 ms
+    timing = session.timing()
+    assert timing["period_p50_ms"] == pytest.approx(50.5) and timing["period_p99_ms"] == pytest.approx(100.0)
+    assert timing["jitter_ms"] == pytest.approx(np.std(np.arange(1, 101)))
+    logged = []
+    session.writer = types.SimpleNamespace(add_scalar=lambda tag, value, step: logged.append((tag, value, step)))
+    session.link = types.SimpleNamespace(round_trip_stats=lambda: {"p50": 0.002})
+    session.world, session.laps_logged, session.frames_dropped = types.SimpleNamespace(lap_times=[12.5]), 0, 3
+    session.log(100)
+    session.world.lap_times.append(11.75)
+    session.log(200)
+    session.log(300)
+    assert [entry for entry in logged if entry[0] == "charts/lap_time"] == [("charts/lap_time", 12.5, 100), ("charts/lap_time", 11.75, 200)]
+    assert ("link/rtt_p50_ms", 2.0, 300) in logged and ("loop/frames_dropped", 3, 300) in logged
+    assert ("loop/period_p99_ms", pytest.approx(100.0), 100) in logged
+
+
 def test_the_e_stop_is_read_while_the_frames_are_stale(tmp_path, monkeypatch, capsys):
     path = fifo_gamepad(tmp_path, monkeypatch)
     writer_fd = os.open(path, os.O_RDWR | os.O_NONBLOCK)
