@@ -753,6 +753,39 @@ def test_the_loop_timing_and_each_lap_are_logged_once():
     assert ("loop/period_p99_ms", pytest.approx(100.0), 100) in logged
 
 
+class ScriptedSession:
+    """What `drive` uses of a CarSession: a human takes over at steps 2-3, and the car is e-stopped
+    while it sends step 5's commands."""
+
+    def __init__(self) -> None:
+        self.stop_requested, self.world, self.mapping, self.step, self.sent = False, None, ActionMapping(), 0, []
+
+    def observe(self):
+        return np.full(3, self.step, dtype=np.float32)
+
+    def human_action(self):
+        return np.array([0.5, -1.0], dtype=np.float32) if self.step in (2, 3) else None
+
+    def act(self, action):
+        self.sent.append(np.asarray(action).tolist())
+        self.stop_requested = self.step == 5
+        return None if self.stop_requested else (0.0, 0.6)
+
+    def log(self, step):
+        pass
+
+    def wait(self):
+        self.step += 1
+
+
+def test_drive_acts_for_the_human_while_they_hold_the_takeover_and_ends_at_an_e_stop_unrewarded():
+    session, asked = ScriptedSession(), []
+    rewards = jetracer.drive(session, lambda obs: asked.append(int(obs[0])) or np.array([0.1, 1.0]), steps=10)
+    assert asked == [0, 1, 4, 5]  # the policy is not asked while the human drives
+    assert session.sent == [[0.1, 1.0], [0.1, 1.0], [0.5, -1.0], [0.5, -1.0], [0.1, 1.0], [0.1, 1.0]]
+    assert rewards == [pytest.approx(1.1)] * 5  # step 5 was never driven: no reward for it
+
+
 def test_the_e_stop_is_read_while_the_frames_are_stale(tmp_path, monkeypatch, capsys):
     path = fifo_gamepad(tmp_path, monkeypatch)
     writer_fd = os.open(path, os.O_RDWR | os.O_NONBLOCK)
