@@ -101,6 +101,7 @@ def test_train_writes_a_checkpoint_and_resumes_from_it(tmp_path):
     out = subprocess.run([sys.executable, "-m", "deploy.jetracer", "train", "--resume", "--checkpoint", str(tmp_path / "broken.pt")],
                          cwd=ROOT, capture_output=True, text=True, timeout=60)  # fmt: skip
     assert out.returncode != 0 and "not a readable training state" in out.stderr
+    assert "weights_only" not in out.stderr and "Traceback" not in out.stderr, "one line, without torch's advice to load it unsafely"
 
 
 @pytest.mark.parametrize("learner", ["pause", "background"])
@@ -1309,6 +1310,7 @@ def test_a_training_whose_car_never_armed_leaves_no_state_that_blocks_the_rerun(
     state = tmp_path / "train.pt"
     out = train("--resume")  # nothing to resume yet
     assert out.returncode != 0 and "No such file or directory" in out.stderr and list(tmp_path.iterdir()) == []  # not even a lock file
+    assert "not a readable training state" not in out.stderr  # a missing file is not a damaged one
     out = train("--camera", "webcam")  # a typo: the car never arms
     assert out.returncode != 0 and out.stderr.strip().splitlines()[-1] == "train: error: unknown camera 'webcam': use csi, usb:N, file:PATH or sim"
     assert list(tmp_path.iterdir()) == []  # not the step-0 state a rerun would refuse as "an earlier training"
