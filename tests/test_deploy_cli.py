@@ -16,6 +16,7 @@ from typing import Callable
 import numpy as np
 import pytest
 import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from conftest import ROOT, fill_the_disk_for
 
@@ -183,11 +184,12 @@ def test_train_stores_each_step_as_the_script_does_and_counts_its_regret(tmp_pat
     monkeypatch.setattr(jetracer, "train", lambda args: result.append(real_train(args)))
     state = tmp_path / "t.pt"
     jetracer.main(["train", "--total-steps", "160", "--train-every", "40", "--gradient-steps", "2", "--jirl.guidance-steps", "60", "--jirl.rl-control-window", "100",
-                   "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST, *PATIENT])  # fmt: skip
+                   "--jirl.log-every", "30", "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST, *PATIENT])  # fmt: skip
     rows = {name: value.numpy() for name, value in torch.load(state, weights_only=True)["buffer"].items()}
     (counters,) = result
     assert len(steps) == len(twin) == 160 and all(step["commands"] is not None for step in steps)
     i, regret, paired, switches = 0, 0.0, 0.0, 0
+    so_far = [(0.0, 0.0, 0)]  # (regret, paired regret, switches) as the step each index names found them
     for t in range(159):  # the last step's transition is never complete
         now, after = steps[t], steps[t + 1]
         previous_action = jetracer.START_ACTION if t == 0 or now["off"] else np.clip(steps[t - 1]["action"], -1.0, 1.0)
@@ -217,6 +219,7 @@ def test_train_stores_each_step_as_the_script_does_and_counts_its_regret(tmp_pat
         regret += max(0.0, 1.075 - reward)
         _, twin_throttle, twin_off, _ = twin[t]
         paired += max(0.0, (-10.0 if twin_off else 1.0 + 0.1 * twin_throttle / 0.6) - reward)
+        so_far.append((regret, paired, switches))
     assert i == len(rows["obs"])
     rl = [step["rl"] for step in steps]
     departure = next(t for t in range(105, 160) if steps[t]["off"])  # under the baseline
@@ -231,6 +234,24 @@ def test_train_stores_each_step_as_the_script_does_and_counts_its_regret(tmp_pat
     assert counters["baseline_regret_per_step"] == pytest.approx(regret) and regret > 0.0
     assert counters["paired_regret_per_step"] == pytest.approx(paired)
     assert counters["rl_control_fraction"] == pytest.approx(sum(rl[-100:]) / 100)
+    # what TensorBoard got every 30 steps: each figure as it stood at that step (its own step's transition is not complete yet)
+    (run_dir,) = tmp_path.glob("train__*")
+    events = EventAccumulator(str(run_dir), size_guidance={"scalars": 0})
+    events.Reload()
+    logged = {tag: {e.step: e.value for e in events.Scalars(tag)} for tag in events.Tags()["scalars"]}
+    logs = [0, 30, 60, 90, 120, 150]
+    expected = {
+        "charts/rl_control_fraction": [sum(rl[max(0, t - 99) : t + 1]) / min(t + 1, 100) for t in logs],
+        "charts/fabricated_transitions": [t - sum(rl[:t]) for t in logs],
+        "charts/baseline_regret_per_step": [so_far[t][0] for t in logs],
+        "charts/paired_regret_per_step": [so_far[t][1] for t in logs],
+        "charts/control_switches": [so_far[t][2] for t in logs],
+    }
+    for tag, values in expected.items():
+        assert sorted(logged[tag]) == logs, tag
+        np.testing.assert_allclose([logged[tag][t] for t in logs], values, rtol=1e-5, atol=1e-5, err_msg=tag)
+    assert sorted(logged["losses/qf_loss"]) == [40, 80, 120, 160]  # each pause's last update, and the one after the loop
+    assert {"loop/period_p50_ms", "loop/frames_dropped", "link/rtt_p50_ms"} <= logged.keys()
 
 
 def test_a_car_that_drives_as_its_baseline_twin_has_no_paired_regret(tmp_path, monkeypatch):
