@@ -1040,10 +1040,12 @@ def test_train_hands_over_within_its_own_total_steps_and_a_resume_keeps_that_hor
     saved = torch.load(state, weights_only=True)
     torch.save({key: value for key, value in saved.items() if key != "guidance_steps"}, state)  # as saved before the horizon was
     assert train("--resume", "--total-steps", "140") == {70}
-    torch.save({**saved, "guidance_steps": -5}, state)
-    with pytest.raises(SystemExit, match="is a damaged jirl-car-training-v2 file: its guidance_steps is -5"):
-        jetracer.main(["train", *common, "--resume", "--total-steps", "160"])
-    assert torch.load(state, weights_only=True)["guidance_steps"] == -5, "left as it was"
+    for damaged in (-5, 2.5, True):  # True is an int to Python, but no horizon
+        torch.save({**saved, "guidance_steps": damaged}, state)
+        with pytest.raises(SystemExit, match=f"is a damaged jirl-car-training-v2 file: its guidance_steps is {damaged}$"):
+            jetracer.main(["train", *common, "--resume", "--total-steps", "160"])
+        kept = torch.load(state, weights_only=True)["guidance_steps"]
+        assert kept == damaged and type(kept) is type(damaged), "left as it was"
 
 
 @pytest.mark.parametrize(
