@@ -821,6 +821,38 @@ def test_the_e_stop_is_read_while_the_frames_are_stale(tmp_path, monkeypatch, ca
     assert "no fresh camera frame" not in capsys.readouterr().err
 
 
+def test_a_training_pause_stops_the_car_comes_once_per_pause_step_and_restarts_the_clock(tmp_path, monkeypatch):
+    """The car must not drive on blind while the agent trains; stale frames at a pause step repeat the
+    step, not the pause; after a pause the next period is a whole one, not cut short to catch up."""
+    events, real = [], {name: getattr(jetracer.HostLink, name) for name in ("stop", "drive")}
+    monkeypatch.setattr(jetracer.HostLink, "stop", lambda self: events.append(("stop",)) or real["stop"](self))
+    monkeypatch.setattr(jetracer.HostLink, "drive", lambda self, *commands: events.append(("drive",)) or real["drive"](self, *commands))
+    real_update, real_save, real_observe = jetracer.jirl.SoftActorCritic.update, jetracer.save_training_state, jetracer.CarSession.observe
+    monkeypatch.setattr(jetracer.jirl.SoftActorCritic, "update", lambda self, *a: events.append(("update",)) or real_update(self, *a))
+
+    def save(path, sac, rb, counters, *rest):  # a slow disk: each save takes four periods
+        events.append(("save", counters["step"]))
+        time.sleep(0.2)
+        return real_save(path, sac, rb, counters, *rest)
+
+    monkeypatch.setattr(jetracer, "save_training_state", save)
+    monkeypatch.setattr(jetracer.CarSession, "observe", lambda self: events.append(("observe", time.monotonic())) or real_observe(self))
+    stale_camera(monkeypatch, lambda n: 41 <= n <= 43)  # the reads of step 40, right after its pause: the step is read four times
+    jetracer.main(["train", "--total-steps", "60", "--train-every", "20", "--gradient-steps", "2", "--checkpoint", str(tmp_path / "t.pt"),
+                   "--log-dir", str(tmp_path), *FAST, *PATIENT])  # fmt: skip
+    assert [event[1] for event in events if event[0] == "save"] == [0, 20, 40, 60]
+    kinds = [event[0] for event in events]
+    updates = [i for i, kind in enumerate(kinds) if kind == "update"]
+    assert len(updates) == 4  # learning starts at 30: two at the pause at 40, two after the last step
+    for i in updates:
+        last_drive = max(j for j in range(i) if kinds[j] == "drive")
+        assert "stop" in kinds[last_drive:i], f"update {i} while the car drove"
+    for pause in (20, 40):
+        at = events.index(("save", pause))
+        first, second = [event[1] for event in events[at:] if event[0] == "observe"][:2]
+        assert second - first >= 0.9 * 0.05, f"the period after the pause at {pause} lasted {second - first:.3f} s"
+
+
 def test_a_stale_frame_ends_the_training_episode_for_the_baseline_too(tmp_path, monkeypatch):
     stale_camera(monkeypatch, lambda n: 21 <= n <= 23)  # three stale periods
     resets, new_episodes, real_new_episode = [], [], jetracer.jirl.Gate.new_episode
