@@ -10,6 +10,7 @@ import sys
 import time
 import types
 from collections import deque
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
@@ -119,6 +120,18 @@ def test_train_learns_from_learning_starts_steps_not_from_as_many_buffer_rows(tm
     assert first_update and first_update[0] >= 30  # 30 steps driven (observed) before the first update
     if learner == "pause":
         assert len(first_update) == 4  # the pauses at 40 and after 60; none at 20, when the buffer held 30 rows
+
+
+def test_learning_starts_at_learning_starts_steps_once_a_batch_is_stored():
+    hp = jetracer.jirl.Args(learning_starts=30, batch_size=16)
+
+    def stored(rows: int):  # what `learning` reads of a replay buffer
+        return types.SimpleNamespace(size=rows)
+
+    assert not jetracer.learning(29, stored(100), hp) and jetracer.learning(30, stored(100), hp)
+    assert not jetracer.learning(30, stored(15), hp) and jetracer.learning(30, stored(16), hp)
+    # --jirl.learning-starts 0: no update before a batch is stored (sampling an empty buffer raises)
+    assert not jetracer.learning(0, stored(0), replace(hp, learning_starts=0))
 
 
 def record_the_worlds(monkeypatch) -> tuple:
