@@ -267,6 +267,38 @@ def test_train_stores_each_step_as_the_script_does_and_counts_its_regret(tmp_pat
     assert {"loop/period_p50_ms", "loop/frames_dropped", "link/rtt_p50_ms"} <= logged.keys()
 
 
+@pytest.mark.parametrize("use_penalty", [True, False])
+def test_the_switch_penalty_marks_a_hand_back_within_an_episode_only_and_can_be_turned_off(tmp_path, monkeypatch, use_penalty):
+    """Scripted gate: the agent drives steps 0-9 and leaves the lane, the baseline drives the next episode's
+    first steps (10-19: no switch, a new episode), the agent 20-21, the baseline 22-39 (a switch at 22)."""
+    script, decided, ticks = [True] * 10 + [False] * 10 + [True] * 2 + [False] * 18, [], []
+    monkeypatch.setattr(jetracer.jirl.Gate, "decide", lambda self, *_: decided.append(1) or script[len(decided) - 1])
+    real_tick = jetracer.SimWorld.tick
+
+    def tick(self):  # the car's 11th tick, which step 9's commands drive, leaves the lane
+        progress = real_tick(self)
+        if not isinstance(self.controller, jetracer._NullController):
+            ticks.append(1)
+            self.off_track = self.off_track or len(ticks) == 11
+        return progress
+
+    monkeypatch.setattr(jetracer.SimWorld, "tick", tick)
+    state = tmp_path / "t.pt"
+    switch = ["--jirl.switch-penalty", "-3"] + ([] if use_penalty else ["--jirl.no-use-switch-penalty"])
+    jetracer.main(["train", "--total-steps", "40", "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST, *PATIENT, *switch])
+    rows = {name: value.numpy() for name, value in torch.load(state, weights_only=True)["buffer"].items()}
+    penalized = np.flatnonzero(rows["rewards"][:, 0] == -3.0)
+    # 39 real transitions (the last step's is never complete), a fabricated one for each of the 27 baseline steps among them
+    assert len(rows["rewards"]) == 39 + 27 + len(penalized) and rows["terminations"][:, 0].sum() == 1
+    if use_penalty:  # Sec. V.A: the agent's step 21, which the baseline took over from
+        (row,) = penalized
+        assert row == 10 + 2 * 10 + 2 and rows["terminations"][row, 0] == 0.0  # right after step 21's real transition
+        np.testing.assert_array_equal(rows["obs"][row], rows["obs"][row - 1])  # its state and action
+        np.testing.assert_array_equal(rows["actions"][row], rows["actions"][row - 1])
+    else:
+        assert len(penalized) == 0
+
+
 def test_a_car_that_drives_as_its_baseline_twin_has_no_paired_regret(tmp_path, monkeypatch):
     """Sim-in-the-loop pairs each step with the baseline's own step from the same pose (a twin car). A car
     the baseline keeps driving (C = 1e300) is that twin, lane departures included: the same pose after
