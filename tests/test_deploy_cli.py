@@ -1160,7 +1160,7 @@ def test_a_session_puts_the_signal_handlers_back_when_it_closes(tmp_path):
             signal.signal(sig, handler)
 
 
-def test_resuming_into_another_buffer_size_keeps_the_newest_transitions_in_order(tmp_path):
+def test_resuming_into_another_buffer_size_keeps_the_newest_transitions_in_order(tmp_path, capsys):
     hp = jetracer.car_jirl_defaults()
     hp.hidden_size = 8
     args = jetracer.Train(jirl=hp)
@@ -1179,6 +1179,8 @@ def test_resuming_into_another_buffer_size_keeps_the_newest_transitions_in_order
         loaded.add(obs(7), np.zeros(2), 7.0, obs(8), False)  # the next write replaces the oldest once full
         expected = newest + [7] if len(newest) < capacity else newest[1:] + [7]
         assert sorted(loaded.rewards[: loaded.size, 0].tolist()) == expected
+        dropped = capacity < 5  # said: a smaller buffer forgets the oldest transitions
+        assert capsys.readouterr().out == (f"resume: --jirl.buffer-size {capacity} keeps the newest 3 of the 5 saved transitions\n" if dropped else "")
     hp.hidden_size = 16
     with pytest.raises(ValueError, match="holds an agent of 8 units, not --jirl.hidden-size 16"):
         jetracer.load_training_state(path, jetracer.jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, hp), loaded)
