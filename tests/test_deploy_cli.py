@@ -202,7 +202,7 @@ def test_train_stores_each_step_as_the_script_does_and_counts_its_regret(tmp_pat
     (counters,) = result
     assert len(steps) == len(twin) == 160 and all(step["commands"] is not None for step in steps)
     i, regret, paired, switches = 0, 0.0, 0.0, 0
-    so_far = [(0.0, 0.0, 0)]  # (regret, paired regret, switches) as the step each index names found them
+    so_far = [(0.0, 0.0, 0)]  # so_far[t]: (regret, paired regret, switches) as step t's log sees them
     for t in range(159):  # the last step's transition is never complete
         now, after = steps[t], steps[t + 1]
         previous_action = jetracer.START_ACTION if t == 0 or now["off"] else np.clip(steps[t - 1]["action"], -1.0, 1.0)
