@@ -756,18 +756,18 @@ def test_a_camera_that_fails_ends_the_run_at_once_saying_why(mode, tmp_path, mon
 
 
 def test_a_frame_is_stale_past_two_periods_and_only_2_s_of_them_in_a_row_end_a_drive(tmp_path, monkeypatch, capsys):
-    def drive(steps):
+    def baseline_for(steps):
         rewards = jetracer.baseline(jetracer.Baseline(steps=steps, log_dir=str(tmp_path), watchdog_ms=2000))
         return len(rewards), re.search(r"frames dropped (\d+)", capsys.readouterr().out).group(1)
 
     stale_camera(monkeypatch, lambda n: True, age=0.06)  # 1.2 periods at 20 Hz: fresh enough to act on
-    assert drive(20) == (20, "0")
+    assert baseline_for(20) == (20, "0")
     monkeypatch.undo()
     stale_camera(monkeypatch, lambda n: True, age=0.15)  # 3 periods: the car waits, stopped
-    assert drive(20) == (0, "20")
+    assert baseline_for(20) == (0, "20")
     monkeypatch.undo()
     stale_camera(monkeypatch, lambda n: n % 31 != 0)  # 30 stale periods, one fresh frame, 30 stale, ...: never 2 s in a row
-    assert drive(100) == (3, "97")
+    assert baseline_for(100) == (3, "97")
 
 
 def test_the_gamepad_takes_over_the_steering_while_its_trigger_is_held_past_half():
