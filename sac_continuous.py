@@ -7,6 +7,7 @@ import importlib
 import math
 import os
 import random
+import reprlib
 import signal
 import sys
 import threading
@@ -574,7 +575,27 @@ def load_checkpoint(path: str) -> dict:
     missing = [key for key in CHECKPOINT_KEYS if key not in checkpoint]
     if missing:
         raise ValueError(f"{path} is a damaged {CHECKPOINT_FORMAT} checkpoint: it has no {', '.join(missing)}")
+    damage = checkpoint_damage(checkpoint)
+    if damage is not None:
+        raise ValueError(f"{path} is a damaged {CHECKPOINT_FORMAT} checkpoint: {damage}")
     return checkpoint
+
+
+def checkpoint_damage(checkpoint: dict) -> Optional[str]:
+    """The first value save_checkpoint cannot have written, named, or None: torch would refuse
+    such a value later with a traceback of its own, and NaN weights would pass for a diverged env."""
+    low, high, weights = checkpoint["action_low"], checkpoint["action_high"], checkpoint["actor"]
+    fits = {
+        "obs_dim": type(checkpoint["obs_dim"]) is int and checkpoint["obs_dim"] > 0,
+        "hidden_size": type(checkpoint["hidden_size"]) is int and checkpoint["hidden_size"] > 0,
+        "action_low": isinstance(low, (list, tuple)) and len(low) > 0 and all(type(x) is float for x in low),
+        "action_high": isinstance(high, (list, tuple)) and isinstance(low, (list, tuple)) and len(high) == len(low) and all(type(x) is float for x in high),
+        "actor": isinstance(weights, dict) and all(type(k) is str and torch.is_tensor(w) and bool(torch.isfinite(w).all()) for k, w in weights.items()),
+    }
+    field = next((field for field, ok in fits.items() if not ok), None)
+    if field == "actor" and isinstance(weights, dict):
+        return f"its {field} holds a weight that is not a named tensor of finite numbers"
+    return None if field is None else f"its {field} is {reprlib.repr(checkpoint[field])}"
 
 
 def actor_from_checkpoint(checkpoint: dict, env: gym.Env) -> Actor:
@@ -592,8 +613,8 @@ def actor_from_checkpoint(checkpoint: dict, env: gym.Env) -> Actor:
     actor = Actor(obs_dim, act_dim, checkpoint["hidden_size"])
     try:
         actor.load_state_dict(checkpoint["actor"])
-    except RuntimeError as err:
-        raise ValueError(f"checkpoint actor weights do not fit: {err}") from None
+    except RuntimeError as err:  # torch's message runs over several lines: keep it on one
+        raise ValueError(f"checkpoint actor weights do not fit: {' '.join(str(err).split())}") from None
     return actor.eval()
 
 

@@ -6,6 +6,7 @@ import importlib
 import math
 import os
 import random
+import reprlib
 import signal
 import sys
 import threading
@@ -662,7 +663,35 @@ def load_checkpoint(path: str) -> dict:
     missing = [key for key in CHECKPOINT_KEYS if key not in checkpoint]
     if missing:
         raise ValueError(f"{path} is a damaged {CHECKPOINT_FORMAT} checkpoint: it has no {', '.join(missing)}")
+    damage = checkpoint_damage(checkpoint)
+    if damage is not None:
+        raise ValueError(f"{path} is a damaged {CHECKPOINT_FORMAT} checkpoint: {damage}")
     return checkpoint
+
+
+def checkpoint_damage(checkpoint: dict) -> Optional[str]:
+    """The first value save_checkpoint cannot have written, named, or None: torch (numpy, for the
+    observation statistics) would refuse such a value later with a traceback of its own, and NaN weights
+    would pass for a diverged env."""
+
+    def statistic(x: object) -> bool:  # a running mean or variance of the observations
+        return isinstance(x, torch.Tensor) and x.is_floating_point() and x.shape == (checkpoint["obs_dim"],) and bool(torch.isfinite(x).all())
+
+    low, high, weights, mean, var = (checkpoint[key] for key in ("action_low", "action_high", "agent", "obs_mean", "obs_var"))
+    normalized = mean is not None or var is not None  # both None: saved without observation normalization
+    fits = {
+        "obs_dim": type(checkpoint["obs_dim"]) is int and checkpoint["obs_dim"] > 0,
+        "hidden_size": type(checkpoint["hidden_size"]) is int and checkpoint["hidden_size"] > 0,
+        "action_low": isinstance(low, (list, tuple)) and len(low) > 0 and all(type(x) is float for x in low),
+        "action_high": isinstance(high, (list, tuple)) and isinstance(low, (list, tuple)) and len(high) == len(low) and all(type(x) is float for x in high),
+        "agent": isinstance(weights, dict) and all(type(k) is str and torch.is_tensor(w) and bool(torch.isfinite(w).all()) for k, w in weights.items()),
+        "obs_mean": statistic(mean) if normalized else True,
+        "obs_var": statistic(var) and bool((var >= 0).all()) if normalized else True,
+    }
+    field = next((field for field, ok in fits.items() if not ok), None)
+    if field == "agent" and isinstance(weights, dict):
+        return f"its {field} holds a weight that is not a named tensor of finite numbers"
+    return None if field is None else f"its {field} is {reprlib.repr(checkpoint[field])}"
 
 
 def evaluate(path: str, env_id: str, episodes: int, seed: int) -> list[float]:
@@ -677,8 +706,8 @@ def evaluate(path: str, env_id: str, episodes: int, seed: int) -> list[float]:
     agent = Agent(obs_dim, act_dim, checkpoint["hidden_size"])
     try:
         agent.load_state_dict(checkpoint["agent"])
-    except RuntimeError as err:
-        raise ValueError(f"checkpoint weights do not fit: {err}") from None
+    except RuntimeError as err:  # torch's message runs over several lines: keep it on one
+        raise ValueError(f"checkpoint weights do not fit: {' '.join(str(err).split())}") from None
     obs_rms = None
     if checkpoint["obs_mean"] is not None:
         obs_rms = RunningMeanStd((obs_dim,))

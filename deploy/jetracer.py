@@ -620,7 +620,8 @@ def load_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
         for name in BUFFER_FIELDS:
             getattr(rb, name)[:kept] = np.roll(state["buffer"][name].numpy(), -state["buffer_pos"], axis=0)[n - kept :]
     except (KeyError, RuntimeError, ValueError, TypeError, AttributeError) as err:
-        raise ValueError(f"{path} is a damaged {TRAIN_STATE_FORMAT} file ({type(err).__name__}: {err})") from None
+        cause = " ".join(str(err).split())  # torch's message runs over several lines: keep it on one
+        raise ValueError(f"{path} is a damaged {TRAIN_STATE_FORMAT} file ({type(err).__name__}: {cause})") from None
     rb.size, rb.pos = kept, kept % rb.capacity
     if kept < n:
         print(f"resume: --jirl.buffer-size {rb.capacity} keeps the newest {kept} of the {n} saved transitions")

@@ -12,6 +12,7 @@ the action is tanh of the Gaussian's mean, mapped to the env's units.
 from __future__ import annotations
 
 import argparse
+import reprlib
 from pathlib import Path
 from typing import Any
 
@@ -54,10 +55,30 @@ def _read(path: Path) -> dict[str, Any]:
 
 
 def _require(data: dict[str, Any], keys: tuple[str, ...], path: Path, what: str) -> None:
-    """ValueError naming what a file with the right format tag lacks (a KeyError would come later)."""
+    """ValueError naming what a file with the right format tag lacks (a KeyError would come later), or
+    the first value in it that no export or sac_continuous.py writes: torch would refuse it later with a
+    traceback, and NaN weights would act as a baseline that fails."""
     missing = [key for key in keys if key not in data]
     if missing:
         raise ValueError(f"{path} is a damaged {what}: it has no {', '.join(missing)}")
+    low, high = data["action_low"], data["action_high"]
+    checks = [
+        ("obs_dim", type(data["obs_dim"]) is int and data["obs_dim"] > 0),
+        ("hidden_size", type(data["hidden_size"]) is int and data["hidden_size"] > 0),
+        ("action_low", isinstance(low, (list, tuple)) and len(low) > 0 and all(type(x) is float for x in low)),
+        ("action_high", isinstance(high, (list, tuple)) and isinstance(low, (list, tuple)) and len(high) == len(low) and all(type(x) is float for x in high)),
+    ]
+    checks += [(key, isinstance(data[key], dict)) for key in ("metadata", "args") if key in keys]
+    checks += [
+        (key, isinstance(data[key], dict) and all(type(k) is str and torch.is_tensor(w) and bool(torch.isfinite(w).all()) for k, w in data[key].items()))
+        for key in ("policy", "actor")
+        if key in keys
+    ]
+    for key, fits in checks:
+        if not fits and key in ("policy", "actor") and isinstance(data[key], dict):
+            raise ValueError(f"{path} is a damaged {what}: its {key} holds a weight that is not a named tensor of finite numbers")
+        if not fits:
+            raise ValueError(f"{path} is a damaged {what}: its {key} is {reprlib.repr(data[key])}")
 
 
 def load_policy(path: Path = WEIGHTS) -> tuple[MeanPolicy, np.ndarray, np.ndarray, dict[str, Any]]:
@@ -69,8 +90,8 @@ def load_policy(path: Path = WEIGHTS) -> tuple[MeanPolicy, np.ndarray, np.ndarra
     policy = MeanPolicy(data["obs_dim"], len(data["action_low"]), data["hidden_size"])
     try:
         policy.load_state_dict(data["policy"])
-    except RuntimeError as err:
-        raise ValueError(f"{path}: the weights do not fit the stated sizes: {err}") from None
+    except RuntimeError as err:  # torch's message runs over several lines: keep it on one
+        raise ValueError(f"{path}: the weights do not fit the stated sizes: {' '.join(str(err).split())}") from None
     low, high = (np.asarray(data[key], dtype=np.float32) for key in ("action_low", "action_high"))
     return policy.eval(), low, high, data["metadata"]
 
@@ -110,8 +131,8 @@ def export(checkpoint: Path, out: Path = WEIGHTS, **metadata: Any) -> None:
     }
     try:
         MeanPolicy(data["obs_dim"], len(data["action_low"]), data["hidden_size"]).load_state_dict(policy)
-    except RuntimeError as err:
-        raise ValueError(f"{checkpoint}: the actor's weights do not fit the stated sizes: {err}") from None
+    except RuntimeError as err:  # torch's message runs over several lines: keep it on one
+        raise ValueError(f"{checkpoint}: the actor's weights do not fit the stated sizes: {' '.join(str(err).split())}") from None
     tmp = Path(f"{out}.tmp")  # written whole, then renamed: a write that fails leaves the old weights as they were
     try:
         with open(tmp, "wb") as file:

@@ -161,6 +161,51 @@ def test_another_scripts_checkpoint_is_named_with_its_format_and_run(tmp_path, l
         script.load_checkpoint(str(foreign))
 
 
+@pytest.mark.parametrize("loader", ["sac_continuous", "jirl_sac_continuous", "ppo_il", "trpo_il"])
+def test_a_checkpoint_holding_values_its_script_cannot_have_written_is_damaged_in_one_line(tmp_path, loader):
+    script = load_script(loader)
+    env, path = script.make_env("Pendulum-v1", 0), tmp_path / "model.cleanrl_model"
+    if loader.endswith("sac_continuous"):
+        weights = "actor"
+        script.save_checkpoint(str(path), "Pendulum-v1", env, script.Actor(3, 1, 8), script.SoftQNetwork(3, 1, 8), script.Args(hidden_size=8))
+    else:
+        weights = "agent"
+        script.save_checkpoint(str(path), "Pendulum-v1", env, script.Agent(3, 1, 8), script.RunningMeanStd((3,)), script.Args(hidden_size=8))
+    saved = torch.load(path, weights_only=True)
+    last = list(saved[weights])[-1]  # a flaw in the last tensor: every one is checked, not the first alone
+    holds = f"its {weights} holds a weight that is not a named tensor of finite numbers"
+    cases = [("hidden_size", "8", "its hidden_size is '8'"), ("hidden_size", 0, "its hidden_size is 0"),
+             ("obs_dim", 3.0, "its obs_dim is 3.0"), ("obs_dim", True, "its obs_dim is True"),
+             ("action_low", "ab", "its action_low is 'ab'"), ("action_low", [], "its action_low is []"),
+             ("obs_dim", 0, "its obs_dim is 0"), ("action_low", 5, "its action_low is 5"), ("action_low", [-2], "its action_low is [-2]"),
+             ("action_high", [2.0, 2.0], "its action_high is [2.0, 2.0]"), ("action_high", [2], "its action_high is [2]"),
+             (weights, [1, 2], f"its {weights} is [1, 2]"), (weights, {**saved[weights], last: [0.0]}, holds),
+             (weights, {**saved[weights], last: torch.full_like(saved[weights][last], float("nan"))}, holds),
+             (weights, {**saved[weights], last: saved[weights][last] * float("inf")}, holds), (weights, {**saved[weights], 7: torch.zeros(1)}, holds)]  # fmt: skip
+    if weights == "agent":  # the observation statistics: both or neither, one per observation, finite, a variance >= 0
+        cases += [("obs_var", -torch.ones(3), "its obs_var is tensor([-1., -1., -1.])"),
+                  ("obs_mean", torch.zeros(5), "its obs_mean is tensor([0., 0., 0., 0., 0.])"), ("obs_mean", None, "its obs_mean is None"),
+                  ("obs_var", None, "its obs_var is None"), ("obs_mean", torch.tensor([0.0, float("nan"), 0.0]), "its obs_mean is tensor([0., nan, 0.])"),
+                  ("obs_var", torch.ones(3, dtype=torch.int64), "its obs_var is tensor([1, 1, 1])")]  # fmt: skip
+    for key, value, damage in cases:
+        damaged = tmp_path / "damaged.cleanrl_model"
+        torch.save({**saved, key: value}, damaged)
+        with pytest.raises(ValueError) as raised:  # without the check: a TypeError, a numpy error, or NaN blamed on the env
+            script.evaluate(str(damaged), "Pendulum-v1", 1, 0)
+        assert str(raised.value) == f"{damaged} is a damaged {script.CHECKPOINT_FORMAT} checkpoint: {damage}", (key, value)
+    assert len(script.evaluate(str(path), "Pendulum-v1", 1, 0)) == 1
+    torch.save({**saved, "action_low": (-2.0,), "action_high": (2.0,)}, tmp_path / "tuples.cleanrl_model")  # bounds as a tuple act alike
+    assert script.evaluate(str(tmp_path / "tuples.cleanrl_model"), "Pendulum-v1", 1, 0) == script.evaluate(str(path), "Pendulum-v1", 1, 0)
+    if weights == "agent":  # saved without observation normalization: neither statistic
+        torch.save({**saved, "obs_mean": None, "obs_var": None}, tmp_path / "raw.cleanrl_model")
+        assert len(script.evaluate(str(tmp_path / "raw.cleanrl_model"), "Pendulum-v1", 1, 0)) == 1
+    for key, value, message in (("hidden_size", 16, "Error(s) in loading state_dict for "), (weights, {**saved[weights], "extra": torch.zeros(1)}, 'Unexpected key(s) in state_dict: "extra"')):
+        torch.save({**saved, key: value}, tmp_path / "unfit.cleanrl_model")
+        with pytest.raises(ValueError) as raised:  # torch's message, on one line
+            script.evaluate(str(tmp_path / "unfit.cleanrl_model"), "Pendulum-v1", 1, 0)
+        assert "weights do not fit: " in str(raised.value) and message in str(raised.value) and "\n" not in str(raised.value), str(raised.value)
+
+
 @pytest.mark.parametrize("loader", ["sac_continuous", "jirl_sac_continuous", "ppo_il", "trpo_il", "walker2d", "deploy"])
 def test_a_damaged_file_is_a_one_line_error_that_never_advises_weights_only_false(tmp_path, loader):
     if loader == "walker2d":

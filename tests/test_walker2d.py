@@ -85,8 +85,21 @@ def test_bad_files_give_clear_errors_and_lose_nothing(tmp_path):
         load_policy(no_metadata)
     short = tmp_path / "short.pt"  # one tensor missing: loading the rest would act with that layer's random init
     torch.save({**weights, "policy": {k: v for k, v in weights["policy"].items() if k != "fc2.bias"}}, short)
-    with pytest.raises(ValueError, match="(?s)the weights do not fit the stated sizes.*fc2.bias"):
+    with pytest.raises(ValueError, match="the weights do not fit the stated sizes.*fc2.bias") as raised:
         load_policy(short)
+    assert "\n" not in str(raised.value), "torch's message, on one line"
+    holds = "holds a weight that is not a named tensor of finite numbers"
+    for key, value, damage in (("hidden_size", "256", "its hidden_size is '256'"), ("hidden_size", 0, "its hidden_size is 0"), ("obs_dim", 0, "its obs_dim is 0"),
+                               ("action_low", 5, "its action_low is 5"), ("action_low", [], "its action_low is []"), ("action_low", [-1] * 6, "its action_low is [-1, -1, -1, -1, -1, -1]"),
+                               ("action_high", [1.0], "its action_high is [1.0]"), ("action_high", [1] * 6, "its action_high is [1, 1, 1, 1, 1, 1]"),
+                               ("policy", {**weights["policy"], 7: torch.zeros(1)}, f"its policy {holds}"),
+                               ("metadata", None, "its metadata is None"), ("policy", [], "its policy is []"),
+                               ("policy", {**weights["policy"], "fc_mean.bias": weights["policy"]["fc_mean.bias"] * float("nan")}, f"its policy {holds}")):  # fmt: skip
+        valued = tmp_path / "valued.pt"  # without the check: a TypeError building the policy, or a baseline acting NaN
+        torch.save({**weights, key: value}, valued)
+        with pytest.raises(ValueError) as raised:
+            load_policy(valued)
+        assert str(raised.value) == f"{valued} is a damaged jirl-policy-weights-v1 file: {damage}", key
     assert corrupt.exists() and other.exists() and resized.exists() and no_policy.exists() and not (tmp_path / "out.pt").exists()
 
 
@@ -118,11 +131,17 @@ def test_export_round_trip_from_a_sac_checkpoint(tmp_path):
     no_args, resized = tmp_path / "no_args.cleanrl_model", tmp_path / "resized.cleanrl_model"
     torch.save({k: v for k, v in saved.items() if k != "args"}, no_args)
     torch.save({**saved, "hidden_size": 8}, resized)
-    for path, message in ((no_args, "is a damaged sac_continuous.py checkpoint: it has no args"),
-                          (resized, "the actor's weights do not fit the stated sizes")):  # fmt: skip
+    valued, unfinite = tmp_path / "valued.cleanrl_model", tmp_path / "unfinite.cleanrl_model"
+    torch.save({**saved, "args": ["--seed", "1"]}, valued)
+    torch.save({**saved, "actor": {**saved["actor"], "fc1.weight": saved["actor"]["fc1.weight"] * float("inf")}}, unfinite)
+    for path, message in ((no_args, "is a damaged sac_continuous.py checkpoint: it has no args\n"),
+                          (resized, "the actor's weights do not fit the stated sizes: Error(s) in loading state_dict for MeanPolicy: size mismatch"),
+                          (valued, "is a damaged sac_continuous.py checkpoint: its args is ['--seed', '1']\n"),
+                          (unfinite, "is a damaged sac_continuous.py checkpoint: its actor holds a weight that is not a named tensor of finite numbers\n")):  # fmt: skip
         result = subprocess.run([sys.executable, "-m", "envs.walker2d", "export", str(path), "--out", str(tmp_path / "bad.pt")],
                                 cwd=ROOT, capture_output=True, text=True)  # fmt: skip
         assert result.returncode == 2 and message in result.stderr and "Traceback" not in result.stderr, result.stderr
+        assert len(result.stderr.splitlines()) == 1, result.stderr
     assert not (tmp_path / "bad.pt").exists() and not (tmp_path / "bad.pt.tmp").exists()
 
 
