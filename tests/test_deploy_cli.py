@@ -1202,6 +1202,14 @@ def damage(state: dict, part: str) -> dict:
         state["buffer"] = torch.zeros(3)
     elif part == "critic":
         state["sac"]["qf"] = {k: v[..., :-1] for k, v in state["sac"]["qf"].items()}
+    elif part == "NaN weight":
+        state["sac"]["actor"] = {k: v * float("nan") if k.endswith(".bias") else v for k, v in state["sac"]["actor"].items()}
+    elif part == "infinite moment":  # deep in the critics' optimizer state, where a resumed Adam would spread it
+        optimizer = state["sac"]["q_optimizer"]
+        state["sac"]["q_optimizer"] = {**optimizer, "state": {i: {k: v * float("inf") if k == "exp_avg" else v for k, v in moments.items()} for i, moments in optimizer["state"].items()}}
+    elif part == "NaN reward":
+        state["buffer"]["rewards"] = state["buffer"]["rewards"].clone()
+        state["buffer"]["rewards"][-1] = float("nan")
     return state
 
 
@@ -1209,6 +1217,8 @@ def damage(state: dict, part: str) -> dict:
     ("counter", "it has no counter updates$"), ("buffer", "it has no buffer rewards$"),
     ("buffer table", "it has no buffer obs, buffer next_obs, buffer actions, buffer rewards, buffer terminations$"), ("entropy", r"\(KeyError: 'log_alpha'\)"),
     ("actions", r"\(ValueError: could not broadcast"), ("critic", r"\(RuntimeError: Error\(s\) in loading state_dict"),
+    ("NaN weight", ": its agent holds a NaN or infinite value$"), ("infinite moment", ": its agent holds a NaN or infinite value$"),
+    ("NaN reward", ": its replay buffer holds a NaN or infinite value$"),
 ])  # fmt: skip
 def test_a_damaged_training_state_is_named_and_kept(tmp_path, part, message):
     hp = jetracer.car_jirl_defaults()
@@ -1218,7 +1228,9 @@ def test_a_damaged_training_state_is_named_and_kept(tmp_path, part, message):
     for i in range(4):
         rb.add(np.zeros(jetracer.OBS_SIZE), np.zeros(2), float(i), np.zeros(jetracer.OBS_SIZE), False)
     args = jetracer.Train(jirl=hp, checkpoint=str(path), resume=True, log_dir=str(tmp_path))
-    jetracer.save_training_state(str(path), jetracer.jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, hp), rb, dict(jetracer.TRAIN_COUNTERS), args)
+    sac = jetracer.jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, hp)
+    sac.update(rb.sample(4), 1)  # the optimizers hold moments to damage
+    jetracer.save_training_state(str(path), sac, rb, dict(jetracer.TRAIN_COUNTERS), args)
     torch.save(damage(torch.load(path, weights_only=True), part), path)
     written = path.read_bytes()
     with pytest.raises(ValueError, match="state.pt is a damaged jirl-car-training-v2 file.*" + message) as raised:
