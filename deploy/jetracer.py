@@ -616,17 +616,23 @@ def load_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
     guidance = state.get("guidance_steps")
     if guidance is not None and not (type(guidance) is int and guidance >= 0):
         raise ValueError(f"{path} is a damaged {TRAIN_STATE_FORMAT} file: its guidance_steps is {guidance!r}")
+    for key, start in TRAIN_COUNTERS.items():  # counts are ints and regret sums floats, none below its start
+        value = state["counters"][key]
+        if type(value) is not type(start) or not start <= value < math.inf:
+            raise ValueError(f"{path} is a damaged {TRAIN_STATE_FORMAT} file: its counter {key} is {value!r}")
     for part, what in (("sac", "agent"), ("buffer", "replay buffer")):  # no training stores one: it would turn every weight to NaN
         if not finite(state[part]):
             raise ValueError(f"{path} is a damaged {TRAIN_STATE_FORMAT} file: its {what} holds a NaN or infinite value")
     # The rows are saved in ring order with the next write position; rolled, they run oldest to newest,
     # so a buffer of another capacity takes the newest rows and goes on writing after them.
     try:  # a failure here leaves a half-loaded agent, which the caller discards: the run ends
-        n = len(state["buffer"]["obs"])
+        n, pos = len(state["buffer"]["obs"]), state["buffer_pos"]
+        if not (type(pos) is int and 0 <= pos <= n):  # np.roll would take any int, and put the rows out of order
+            raise ValueError(f"its buffer_pos {pos!r} is not a row of its {n} or the next")
         kept = min(n, rb.capacity)
         sac.load_state_dict(state["sac"])
         for name in BUFFER_FIELDS:
-            getattr(rb, name)[:kept] = np.roll(state["buffer"][name].numpy(), -state["buffer_pos"], axis=0)[n - kept :]
+            getattr(rb, name)[:kept] = np.roll(state["buffer"][name].numpy(), -pos, axis=0)[n - kept :]
     except (KeyError, RuntimeError, ValueError, TypeError, AttributeError) as err:
         cause = " ".join(str(err).split())  # torch's message runs over several lines: keep it on one
         raise ValueError(f"{path} is a damaged {TRAIN_STATE_FORMAT} file ({type(err).__name__}: {cause})") from None

@@ -1187,8 +1187,13 @@ def test_resuming_into_another_buffer_size_keeps_the_newest_transitions_in_order
         jetracer.load_training_state(path, jetracer.jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, hp), loaded)
 
 
+COUNTER_DAMAGE = {"a count as text": ("step", "5"), "a count as a bool": ("fabricated_transitions", True), "a count as a float": ("updates", 3.0),
+                  "a negative count": ("control_switches", -1), "a NaN regret sum": ("baseline_regret_per_step", float("nan")),
+                  "an infinite regret sum": ("paired_regret_per_step", float("inf")), "a negative regret sum": ("baseline_regret_per_step", -0.5)}  # fmt: skip
+
+
 def damage(state: dict, part: str) -> dict:
-    """A copy of a training state with one part removed or made the wrong shape."""
+    """A copy of a training state with one part removed, made the wrong shape, or given a value no training writes."""
     state = {**state, "sac": dict(state["sac"]), "buffer": dict(state["buffer"]), "counters": dict(state["counters"])}
     if part == "counter":
         del state["counters"]["updates"]
@@ -1207,6 +1212,11 @@ def damage(state: dict, part: str) -> dict:
     elif part == "infinite moment":  # deep in the critics' optimizer state, where a resumed Adam would spread it
         optimizer = state["sac"]["q_optimizer"]
         state["sac"]["q_optimizer"] = {**optimizer, "state": {i: {k: v * float("inf") if k == "exp_avg" else v for k, v in moments.items()} for i, moments in optimizer["state"].items()}}
+    elif part in COUNTER_DAMAGE:
+        key, value = COUNTER_DAMAGE[part]
+        state["counters"][key] = value
+    elif part.startswith("buffer_pos "):
+        state["buffer_pos"] = {"5": 5, "-1": -1, "True": True}[part.split()[1]]  # True would roll by -1 as an int
     elif part == "NaN reward":
         state["buffer"]["rewards"] = state["buffer"]["rewards"].clone()
         state["buffer"]["rewards"][-1] = float("nan")
@@ -1219,6 +1229,10 @@ def damage(state: dict, part: str) -> dict:
     ("actions", r"\(ValueError: could not broadcast"), ("critic", r"\(RuntimeError: Error\(s\) in loading state_dict"),
     ("NaN weight", ": its agent holds a NaN or infinite value$"), ("infinite moment", ": its agent holds a NaN or infinite value$"),
     ("NaN reward", ": its replay buffer holds a NaN or infinite value$"),
+    ("buffer_pos 5", r"\(ValueError: its buffer_pos 5 is not a row of its 4 or the next\)$"),
+    ("buffer_pos -1", r"\(ValueError: its buffer_pos -1 is not a row of its 4 or the next\)$"),
+    ("buffer_pos True", r"\(ValueError: its buffer_pos True is not a row of its 4 or the next\)$"),
+    *[(part, f": its counter {key} is {value!r}$") for part, (key, value) in COUNTER_DAMAGE.items()],
 ])  # fmt: skip
 def test_a_damaged_training_state_is_named_and_kept(tmp_path, part, message):
     hp = jetracer.car_jirl_defaults()
