@@ -797,8 +797,8 @@ def load_checkpoint(path: str) -> dict:
 
 
 def checkpoint_damage(checkpoint: dict) -> Optional[str]:
-    """The first value save_checkpoint cannot have written, named, or None: torch would refuse
-    such a value later with a traceback of its own, and NaN weights would pass for a diverged env."""
+    """The first value no sound checkpoint holds, named, or None: torch would refuse such a value later
+    with a traceback of its own, and NaN weights would pass for a diverged env."""
     low, high, weights = checkpoint["action_low"], checkpoint["action_high"], checkpoint["actor"]
     fits = {
         "obs_dim": type(checkpoint["obs_dim"]) is int and checkpoint["obs_dim"] > 0,
@@ -808,8 +808,9 @@ def checkpoint_damage(checkpoint: dict) -> Optional[str]:
         "actor": isinstance(weights, dict) and all(type(k) is str and torch.is_tensor(w) and bool(torch.isfinite(w).all()) for k, w in weights.items()),
     }
     field = next((field for field, ok in fits.items() if not ok), None)
-    if field == "actor" and isinstance(weights, dict):
-        return f"its {field} holds a weight that is not a named tensor of finite numbers"
+    if field == "actor" and isinstance(weights, dict):  # NaN: a damaged file, or a training that diverged
+        named = all(type(k) is str and torch.is_tensor(w) for k, w in weights.items())
+        return f"its {field} holds {'a NaN or infinite weight' if named else 'an entry that is not a named tensor'}"
     return None if field is None else f"its {field} is {reprlib.repr(checkpoint[field])}"
 
 

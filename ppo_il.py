@@ -601,9 +601,9 @@ def load_checkpoint(path: str) -> dict:
 
 
 def checkpoint_damage(checkpoint: dict) -> Optional[str]:
-    """The first value save_checkpoint cannot have written, named, or None: torch (numpy, for the
-    observation statistics) would refuse such a value later with a traceback of its own, and NaN weights
-    would pass for a diverged env."""
+    """The first value no sound checkpoint holds, named, or None: torch (numpy, for the observation
+    statistics) would refuse such a value later with a traceback of its own, and NaN weights would pass
+    for a diverged env."""
 
     def statistic(x: object) -> bool:  # a running mean or variance of the observations
         return isinstance(x, torch.Tensor) and x.is_floating_point() and x.shape == (checkpoint["obs_dim"],) and bool(torch.isfinite(x).all())
@@ -620,8 +620,9 @@ def checkpoint_damage(checkpoint: dict) -> Optional[str]:
         "obs_var": statistic(var) and bool((var >= 0).all()) if normalized else True,
     }
     field = next((field for field, ok in fits.items() if not ok), None)
-    if field == "agent" and isinstance(weights, dict):
-        return f"its {field} holds a weight that is not a named tensor of finite numbers"
+    if field == "agent" and isinstance(weights, dict):  # NaN: a damaged file, or a training that diverged
+        named = all(type(k) is str and torch.is_tensor(w) for k, w in weights.items())
+        return f"its {field} holds {'a NaN or infinite weight' if named else 'an entry that is not a named tensor'}"
     return None if field is None else f"its {field} is {reprlib.repr(checkpoint[field])}"
 
 

@@ -76,7 +76,8 @@ def _require(data: dict[str, Any], keys: tuple[str, ...], path: Path, what: str)
     ]
     for key, fits in checks:
         if not fits and key in ("policy", "actor") and isinstance(data[key], dict):
-            raise ValueError(f"{path} is a damaged {what}: its {key} holds a weight that is not a named tensor of finite numbers")
+            named = all(type(k) is str and torch.is_tensor(w) for k, w in data[key].items())
+            raise ValueError(f"{path} is a damaged {what}: its {key} holds {'a NaN or infinite weight' if named else 'an entry that is not a named tensor'}")
         if not fits:
             raise ValueError(f"{path} is a damaged {what}: its {key} is {reprlib.repr(data[key])}")
 

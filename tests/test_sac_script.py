@@ -173,15 +173,15 @@ def test_a_checkpoint_holding_values_its_script_cannot_have_written_is_damaged_i
         script.save_checkpoint(str(path), "Pendulum-v1", env, script.Agent(3, 1, 8), script.RunningMeanStd((3,)), script.Args(hidden_size=8))
     saved = torch.load(path, weights_only=True)
     last = list(saved[weights])[-1]  # a flaw in the last tensor: every one is checked, not the first alone
-    holds = f"its {weights} holds a weight that is not a named tensor of finite numbers"
+    nan, unnamed = f"its {weights} holds a NaN or infinite weight", f"its {weights} holds an entry that is not a named tensor"
     cases = [("hidden_size", "8", "its hidden_size is '8'"), ("hidden_size", 0, "its hidden_size is 0"),
              ("obs_dim", 3.0, "its obs_dim is 3.0"), ("obs_dim", True, "its obs_dim is True"),
              ("action_low", "ab", "its action_low is 'ab'"), ("action_low", [], "its action_low is []"),
              ("obs_dim", 0, "its obs_dim is 0"), ("action_low", 5, "its action_low is 5"), ("action_low", [-2], "its action_low is [-2]"),
              ("action_high", [2.0, 2.0], "its action_high is [2.0, 2.0]"), ("action_high", [2], "its action_high is [2]"),
-             (weights, [1, 2], f"its {weights} is [1, 2]"), (weights, {**saved[weights], last: [0.0]}, holds),
-             (weights, {**saved[weights], last: torch.full_like(saved[weights][last], float("nan"))}, holds),
-             (weights, {**saved[weights], last: saved[weights][last] * float("inf")}, holds), (weights, {**saved[weights], 7: torch.zeros(1)}, holds)]  # fmt: skip
+             (weights, [1, 2], f"its {weights} is [1, 2]"), (weights, {**saved[weights], last: [0.0]}, unnamed),
+             (weights, {**saved[weights], last: torch.full_like(saved[weights][last], float("nan"))}, nan),
+             (weights, {**saved[weights], last: saved[weights][last] * float("inf")}, nan), (weights, {**saved[weights], 7: torch.zeros(1)}, unnamed)]  # fmt: skip
     if weights == "agent":  # the observation statistics: both or neither, one per observation, finite, a variance >= 0
         cases += [("obs_var", -torch.ones(3), "its obs_var is tensor([-1., -1., -1.])"),
                   ("obs_mean", torch.zeros(5), "its obs_mean is tensor([0., 0., 0., 0., 0.])"), ("obs_mean", None, "its obs_mean is None"),
