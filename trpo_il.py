@@ -682,8 +682,8 @@ def checkpoint_damage(checkpoint: dict) -> Optional[str]:
     fits = {
         "obs_dim": type(checkpoint["obs_dim"]) is int and checkpoint["obs_dim"] > 0,
         "hidden_size": type(checkpoint["hidden_size"]) is int and checkpoint["hidden_size"] > 0,
-        "action_low": isinstance(low, (list, tuple)) and len(low) > 0 and all(type(x) is float for x in low),
-        "action_high": isinstance(high, (list, tuple)) and isinstance(low, (list, tuple)) and len(high) == len(low) and all(type(x) is float for x in high),
+        "action_low": isinstance(low, (list, tuple)) and len(low) > 0 and all(type(x) in (int, float) for x in low),
+        "action_high": isinstance(high, (list, tuple)) and isinstance(low, (list, tuple)) and len(high) == len(low) and all(type(x) in (int, float) for x in high),
         "agent": isinstance(weights, dict) and all(type(k) is str and torch.is_tensor(w) and bool(torch.isfinite(w).all()) for k, w in weights.items()),
         "obs_mean": statistic(mean) if normalized else True,
         "obs_var": statistic(var) and bool((var >= 0).all()) if normalized else True,

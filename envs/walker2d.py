@@ -65,8 +65,8 @@ def _require(data: dict[str, Any], keys: tuple[str, ...], path: Path, what: str)
     checks = [
         ("obs_dim", type(data["obs_dim"]) is int and data["obs_dim"] > 0),
         ("hidden_size", type(data["hidden_size"]) is int and data["hidden_size"] > 0),
-        ("action_low", isinstance(low, (list, tuple)) and len(low) > 0 and all(type(x) is float for x in low)),
-        ("action_high", isinstance(high, (list, tuple)) and isinstance(low, (list, tuple)) and len(high) == len(low) and all(type(x) is float for x in high)),
+        ("action_low", isinstance(low, (list, tuple)) and len(low) > 0 and all(type(x) in (int, float) for x in low)),
+        ("action_high", isinstance(high, (list, tuple)) and isinstance(low, (list, tuple)) and len(high) == len(low) and all(type(x) in (int, float) for x in high)),
     ]
     checks += [(key, isinstance(data[key], dict)) for key in ("metadata", "args") if key in keys]
     checks += [

@@ -177,8 +177,8 @@ def test_a_checkpoint_holding_values_its_script_cannot_have_written_is_damaged_i
     cases = [("hidden_size", "8", "its hidden_size is '8'"), ("hidden_size", 0, "its hidden_size is 0"),
              ("obs_dim", 3.0, "its obs_dim is 3.0"), ("obs_dim", True, "its obs_dim is True"),
              ("action_low", "ab", "its action_low is 'ab'"), ("action_low", [], "its action_low is []"),
-             ("obs_dim", 0, "its obs_dim is 0"), ("action_low", 5, "its action_low is 5"), ("action_low", [-2], "its action_low is [-2]"),
-             ("action_high", [2.0, 2.0], "its action_high is [2.0, 2.0]"), ("action_high", [2], "its action_high is [2]"),
+             ("obs_dim", 0, "its obs_dim is 0"), ("action_low", 5, "its action_low is 5"), ("action_low", [True], "its action_low is [True]"),
+             ("action_high", [2.0, 2.0], "its action_high is [2.0, 2.0]"), ("action_high", ["2"], "its action_high is ['2']"),
              (weights, [1, 2], f"its {weights} is [1, 2]"), (weights, {**saved[weights], last: [0.0]}, unnamed),
              (weights, {**saved[weights], last: torch.full_like(saved[weights][last], float("nan"))}, nan),
              (weights, {**saved[weights], last: saved[weights][last] * float("inf")}, nan), (weights, {**saved[weights], 7: torch.zeros(1)}, unnamed)]  # fmt: skip
@@ -194,7 +194,7 @@ def test_a_checkpoint_holding_values_its_script_cannot_have_written_is_damaged_i
             script.evaluate(str(damaged), "Pendulum-v1", 1, 0)
         assert str(raised.value) == f"{damaged} is a damaged {script.CHECKPOINT_FORMAT} checkpoint: {damage}", (key, value)
     assert len(script.evaluate(str(path), "Pendulum-v1", 1, 0)) == 1
-    torch.save({**saved, "action_low": (-2.0,), "action_high": (2.0,)}, tmp_path / "tuples.cleanrl_model")  # bounds as a tuple act alike
+    torch.save({**saved, "action_low": (-2,), "action_high": (2.0,)}, tmp_path / "tuples.cleanrl_model")  # a tuple, an int bound (an int Box's): alike
     assert script.evaluate(str(tmp_path / "tuples.cleanrl_model"), "Pendulum-v1", 1, 0) == script.evaluate(str(path), "Pendulum-v1", 1, 0)
     if weights == "agent":  # saved without observation normalization: neither statistic
         torch.save({**saved, "obs_mean": None, "obs_var": None}, tmp_path / "raw.cleanrl_model")
