@@ -162,7 +162,7 @@ def test_another_scripts_checkpoint_is_named_with_its_format_and_run(tmp_path, l
 
 
 @pytest.mark.parametrize("loader", ["sac_continuous", "jirl_sac_continuous", "ppo_il", "trpo_il"])
-def test_a_checkpoint_holding_values_its_script_cannot_have_written_is_damaged_in_one_line(tmp_path, loader):
+def test_a_checkpoint_holding_a_value_no_sound_checkpoint_holds_is_damaged_in_one_line(tmp_path, loader):
     script = load_script(loader)
     env, path = script.make_env("Pendulum-v1", 0), tmp_path / "model.cleanrl_model"
     if loader.endswith("sac_continuous"):
