@@ -15,6 +15,7 @@ import pytest
 import torch
 
 ROOT = Path(__file__).resolve().parent.parent
+CAR_TRAIN_FAST = ["--jirl.hidden-size", "16", "--jirl.batch-size", "16", "--jirl.learning-starts", "30"]  # a small agent for `deploy.jetracer train` in tests
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 

@@ -6,12 +6,10 @@ import sys
 import pytest
 from torch.utils.tensorboard import SummaryWriter
 
-from conftest import ROOT
+from conftest import CAR_TRAIN_FAST, ROOT
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import car_run  # noqa: E402
-
-FAST = ["--jirl.hidden-size", "16", "--jirl.batch-size", "16", "--jirl.learning-starts", "30"]
 
 
 def write_log(run_dir, scalars: dict[str, list[tuple[int, float]]]) -> None:
@@ -66,7 +64,7 @@ def test_bad_arguments_are_one_line_errors(tmp_path, capsys):
 
 def test_it_reads_what_a_real_training_logs(tmp_path):
     """The tags it reads are the ones `deploy.jetracer train` writes (laps take longer than a test)."""
-    args = ["train", "--total-steps", "60", "--jirl.log-every", "20", "--checkpoint", str(tmp_path / "state.pt"), "--log-dir", str(tmp_path / "runs"), *FAST]
+    args = ["train", "--total-steps", "60", "--jirl.log-every", "20", "--checkpoint", str(tmp_path / "state.pt"), "--log-dir", str(tmp_path / "runs"), *CAR_TRAIN_FAST]
     out = subprocess.run([sys.executable, "-m", "deploy.jetracer", *args], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     (run_dir,) = (tmp_path / "runs").iterdir()

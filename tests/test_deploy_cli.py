@@ -19,12 +19,11 @@ import pytest
 import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from conftest import ROOT, fill_the_disk_for
+from conftest import CAR_TRAIN_FAST as FAST, ROOT, fill_the_disk_for
 
 jetracer = pytest.importorskip("deploy.jetracer")
 from envs.car_interface import ActionMapping  # noqa: E402
 
-FAST = ["--jirl.hidden-size", "16", "--jirl.batch-size", "16", "--jirl.learning-starts", "30"]
 # the mock controller's longest watchdog: a test that checks no watchdog need not fail where a loaded machine starves the link's
 # send thread for the default 250 ms
 PATIENT = ["--watchdog-ms", "2000"]

@@ -88,12 +88,14 @@ def test_bad_files_give_clear_errors_and_lose_nothing(tmp_path):
     with pytest.raises(ValueError, match="the weights do not fit the stated sizes.*fc2.bias") as raised:
         load_policy(short)
     assert "\n" not in str(raised.value), "torch's message, on one line"
+    nan_bias = {**weights["policy"], "fc_mean.bias": weights["policy"]["fc_mean.bias"] * float("nan")}
     for key, value, damage in (("hidden_size", "256", "its hidden_size is '256'"), ("hidden_size", 0, "its hidden_size is 0"), ("obs_dim", 0, "its obs_dim is 0"),
-                               ("action_low", 5, "its action_low is 5"), ("action_low", [], "its action_low is []"), ("action_low", [None] * 6, "its action_low is [None, None, None, None, None, None]"),
-                               ("action_high", [1.0], "its action_high is [1.0]"), ("action_high", [True] * 6, "its action_high is [True, True, True, True, True, True]"),
+                               ("action_low", 5, "its action_low is 5"), ("action_low", [], "its action_low is []"),
+                               ("action_low", [None] * 6, "its action_low is [None, None, None, None, None, None]"), ("action_high", [1.0], "its action_high is [1.0]"),
+                               ("action_high", [True] * 6, "its action_high is [True, True, True, True, True, True]"),
                                ("policy", {**weights["policy"], 7: torch.zeros(1)}, "its policy holds an entry that is not a named tensor"),
                                ("metadata", None, "its metadata is None"), ("policy", [], "its policy is []"),
-                               ("policy", {**weights["policy"], "fc_mean.bias": weights["policy"]["fc_mean.bias"] * float("nan")}, "its policy holds a NaN or infinite weight")):  # fmt: skip
+                               ("policy", nan_bias, "its policy holds a NaN or infinite weight")):  # fmt: skip
         valued = tmp_path / "valued.pt"  # without the check: a TypeError building the policy, or a baseline acting NaN
         torch.save({**weights, key: value}, valued)
         with pytest.raises(ValueError) as raised:
