@@ -21,7 +21,7 @@ def write_log(run_dir, scalars: dict[str, list[tuple[int, float]]]) -> None:
 
 
 def test_windows_control_counters_and_timing_of_a_known_log(tmp_path, capsys):
-    laps = [(900, 14.0), (1000, 13.0), (2000, 12.0), (2000, 12.5), (3000, 11.0), (4000, 10.0)]  # two laps at one log
+    laps = [(900, 14.0), (1000, 13.0), (2000, 12.0), (2000, 15.5), (3000, 11.0), (4000, 10.0)]  # two laps at one log
     control = [(500, 0.2), (1000, 0.6), (1500, 1.0), (2000, 0.9), (2500, 1.0), (3000, 1.0), (4000, 1.0)]
     write_log(tmp_path, {
         "charts/lap_time": laps, "charts/rl_control_fraction": control,
@@ -30,9 +30,10 @@ def test_windows_control_counters_and_timing_of_a_known_log(tmp_path, capsys):
         "link/rtt_p50_ms": [(1000, 0.5)], "loop/frames_dropped": [(1000, 0.0), (4000, 2.0)],
     })  # fmt: skip
     figures = car_run.summarize(car_run.read(tmp_path), [0, 1000, 3000, 4000], control_at=1200)
-    # [0, 1000): 14.0; [1000, 3000): 13.0, 12.0, 12.5; [3000, 4000] with the last edge: 11.0, 10.0
-    assert [(w["laps"], w["median_lap_s"]) for w in figures["windows"]] == [(1, 14.0), (3, 12.5), (2, 10.5)]
+    # [0, 1000): 14.0; [1000, 3000): 13.0, 12.0, 15.5 (median 13.0, mean 13.5); [3000, 4000] with the last edge: 11.0, 10.0
+    assert [(w["laps"], w["median_lap_s"]) for w in figures["windows"]] == [(1, 14.0), (3, 13.0), (2, 10.5)]
     assert figures["control_at"] == (1500, 1.0)  # the first log at or after step 1200
+    assert car_run.summarize(car_run.read(tmp_path), [0, 4000], control_at=1000)["control_at"] == (1000, pytest.approx(0.6))  # at: a log on the step
     assert figures["full_control_from"] == 2500  # 100 % at 1500 did not last
     assert figures["last"]["control_switches"] == (4000, 7.0)
     assert figures["last"]["baseline_regret_per_step"] == (4000, pytest.approx(11.075))
@@ -41,7 +42,7 @@ def test_windows_control_counters_and_timing_of_a_known_log(tmp_path, capsys):
     assert figures["timing"]["link/rtt_p99_ms"] is None and figures["frames_dropped"] == 2.0
     car_run.main([str(tmp_path), "--windows", "0", "1000", "3000", "4000", "--control-at", "1200"])
     out = capsys.readouterr().out
-    assert "| median lap time (s) | 14.00 | 12.50 | 10.50 |" in out and "| laps | 1 | 3 | 2 |" in out
+    assert "| median lap time (s) | 14.00 | 13.00 | 10.50 |" in out and "| laps | 1 | 3 | 2 |" in out
     assert "RL control 100 % at step 1,500; 100 % from step 2,500 on" in out
     assert "fabricated_transitions: not logged" in out and "baseline_regret_per_step at step 4,000: 11.1" in out
 
