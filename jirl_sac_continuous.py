@@ -652,6 +652,10 @@ class Actor(nn.Module):
         return y_t, log_prob.sum(1, keepdim=True), torch.tanh(mean)
 
 
+PART_NAMES = {"actor": "the actor", "qf": "the critics", "qf_target": "the target critics", "q_optimizer": "the critics' optimizer",
+              "actor_optimizer": "the actor's optimizer", "log_alpha": "the entropy coefficient"}  # SoftActorCritic.state_dict()'s, in words
+
+
 class SoftActorCritic:
     """SAC's networks, optimizers and entropy coefficient, and one gradient step of it (`update`)."""
 
@@ -724,6 +728,22 @@ class SoftActorCritic:
         losses["alpha"] = self.alpha
         return losses
 
+    def divergence(self) -> str:
+        """The parts whose weights or optimizer moments hold a NaN or an infinity ('' when none): a training
+        that diverged (a step or a reward too large), named so in the line that ends the run, and not taken
+        for the env's fault, which its NaN action would become (CheckedEnv). The car's training checks the
+        same before it saves, as a state holding either would not resume."""
+
+        def finite(part: object) -> bool:  # every tensor in a part, in the dicts an optimizer's state nests
+            if isinstance(part, dict):
+                return all(finite(x) for x in part.values())
+            return not torch.is_tensor(part) or bool(torch.isfinite(part).all())
+
+        names = [PART_NAMES[key] for key, part in self.state_dict().items() if not finite(part)]
+        if not names:
+            return ""
+        return "NaN or infinite values in " + (" and ".join([", ".join(names[:-1]), names[-1]]) if len(names) > 1 else names[0])
+
     def state_dict(self) -> dict:
         """Everything needed to resume training: networks, targets, optimizers, entropy coefficient."""
         state = {name: getattr(self, name).state_dict() for name in ("actor", "qf", "qf_target", "q_optimizer", "actor_optimizer")}
@@ -733,6 +753,10 @@ class SoftActorCritic:
     def load_state_dict(self, state: dict) -> None:
         for name in ("actor", "qf", "qf_target", "q_optimizer", "actor_optimizer"):
             getattr(self, name).load_state_dict(state[name])
+        # an optimizer's state carries the learning rates it was made with: this run's apply, as its other settings do
+        self.q_optimizer.param_groups[0]["lr"] = self.args.q_lr
+        for group, lr in zip(self.actor_optimizer.param_groups, (self.args.policy_lr, self.args.q_lr)):  # the actor's, then the entropy coefficient's
+            group["lr"] = lr
         with torch.no_grad():
             self.log_alpha.copy_(state["log_alpha"])
         self.alpha = self.log_alpha.exp().detach()
@@ -1068,6 +1092,9 @@ if __name__ == "__main__":
             break
         with torch.inference_mode():
             mean, log_std = actor(torch.from_numpy(obs).float().unsqueeze(0))
+            if not math.isfinite(mean.sum() + log_std.sum()):  # a diverged training: end before its NaN acts, naming it
+                stop.end(f"{args.exp_name}: error: the training diverged: {sac.divergence() or 'the actor overflowed'}", 1)
+                break
             rl_action = torch.tanh(torch.normal(mean, log_std.exp()))[0].numpy()  # a^rl ~ pi(.|s_t)
         mean, log_std = mean[0].numpy().astype(np.float64), log_std[0].numpy().astype(np.float64)
         if baseline_action is None:  # the baseline does not intervene: the agent acts, no gate

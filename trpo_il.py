@@ -462,10 +462,24 @@ class Agent(nn.Module):
 
     def get_action_and_value(self, x: torch.Tensor, action: Optional[torch.Tensor] = None):
         action_mean = self.actor_mean(x)
-        probs = Normal(action_mean, self.actor_logstd.expand_as(action_mean).exp())
+        # unchecked: a NaN that an update makes is found after the update (`divergence`), not as torch's error mid-update
+        probs = Normal(action_mean, self.actor_logstd.expand_as(action_mean).exp(), validate_args=False)
         if action is None:
             action = probs.sample()
         return action, probs.log_prob(action).sum(1), probs.entropy().sum(1), self.critic(x)
+
+    def divergence(self) -> str:
+        """What makes the agent unusable after an update ('' when nothing), for the line that ends the run:
+        the parts that hold a NaN or an infinity (a step or a reward too large diverged), or a log-std
+        whose standard deviation is 0 or infinite. The rollout then only ever samples a checked policy."""
+        parts = {"the policy's mean": self.actor_mean.parameters(), "the policy's log-std": [self.actor_logstd], "the critic": self.critic.parameters()}
+        names = [name for name, tensors in parts.items() if not all(torch.isfinite(t).all() for t in tensors)]
+        if names:
+            return "NaN or infinite weights in " + (" and ".join([", ".join(names[:-1]), names[-1]]) if len(names) > 1 else names[0])
+        std = self.actor_logstd.exp()
+        if not ((std > 0) & torch.isfinite(std)).all():
+            return f"a policy standard deviation of 0 or infinity (log-std {self.actor_logstd.tolist()[0]})"
+        return ""
 
 
 def policy_params(agent: "Agent") -> list:
@@ -474,7 +488,8 @@ def policy_params(agent: "Agent") -> list:
 
 def policy_distribution(agent: "Agent", obs: torch.Tensor) -> Normal:
     mean = agent.actor_mean(obs)
-    return Normal(mean, agent.actor_logstd.expand_as(mean).exp())
+    # unchecked: the line search rejects a trial step to a NaN, zero or infinite standard deviation (its KL is not <= max_kl)
+    return Normal(mean, agent.actor_logstd.expand_as(mean).exp(), validate_args=False)
 
 
 def fisher_vector_product(agent: "Agent", obs: torch.Tensor, vector: torch.Tensor, damping: float) -> torch.Tensor:
@@ -553,6 +568,9 @@ def collect_baseline_data(env: gym.Env, baseline: Callable, steps: int, seed: in
         return_list.extend(returns_to_go)
         episode_returns.append(sum(rewards))
         episode += 1
+    largest = float(np.max(np.abs(return_list)))
+    if largest > float(np.finfo(np.float32).max):  # stored as float32 it would be infinite, and a value fitted to it NaN
+        raise ValueError(f"the baseline's discounted returns reach {largest:.3g}, beyond float32's range; scale the env's rewards down")
     return {
         "obs": np.asarray(obs_list, dtype=np.float32),
         "actions": np.asarray(action_list, dtype=np.float32),
@@ -606,6 +624,9 @@ def imitate(agent: Agent, obs: np.ndarray, actions: np.ndarray, returns: np.ndar
             value_loss.backward()
             value_optimizer.step()
         rng.shuffle(order)
+    diverged = agent.divergence()
+    if diverged:  # found here, not as the cloned policy's unloadable checkpoint or the first update's NaN
+        raise ValueError(f"imitation diverged: {diverged}")
     writer.add_scalar("il/value_loss", value_loss.item(), 0)
     return {"epochs": epoch, "action_mse": best_mse, "value_loss": value_loss.item()}
 
@@ -914,7 +935,10 @@ if __name__ == "__main__":
             save_checkpoint(il_path, args.env_id, env, agent, obs_rms, args)
         except OSError as err:  # a full disk: say so in one line, not as torch's traceback
             raise SystemExit(f"{args.exp_name}: error: cannot save the model to {il_path}: {err.strerror or err}") from None
-        il_returns = evaluate(il_path, args.env_id, args.eval_episodes, args.seed)
+        try:
+            il_returns = evaluate(il_path, args.env_id, args.eval_episodes, args.seed)
+        except ValueError as err:  # the cloned model is saved; only its evaluation failed
+            raise SystemExit(f"{args.exp_name}: error: {err}")
         writer.add_scalar("il/eval_return", float(np.mean(il_returns)), 0)
         print(f"cloned policy: mean return {np.mean(il_returns):.1f}")
 
@@ -1064,6 +1088,10 @@ if __name__ == "__main__":
                 v_loss.backward()
                 value_optimizer.step()
 
+        diverged = agent.divergence()
+        if diverged:  # the update diverged: end here, before a rollout samples its policy or its NaN is logged
+            stop.end(f"{args.exp_name}: error: the training diverged: {diverged}", 1)
+            break
         y_pred, y_true = values.numpy(), returns.numpy()
         var_y = np.var(y_true)
         explained_var = np.nan if var_y == 0 else 1 - np.var(y_true - y_pred) / var_y

@@ -630,12 +630,17 @@ def load_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
         if not (type(pos) is int and 0 <= pos <= n):  # np.roll would take any int, and put the rows out of order
             raise ValueError(f"its buffer_pos {pos!r} is not a row of its {n} or the next")
         kept = min(n, rb.capacity)
+        rates = {"--jirl.q-lr": (state["sac"]["q_optimizer"]["param_groups"][0]["lr"], sac.args.q_lr),
+                 "--jirl.policy-lr": (state["sac"]["actor_optimizer"]["param_groups"][0]["lr"], sac.args.policy_lr)}  # fmt: skip
         sac.load_state_dict(state["sac"])
         for name in BUFFER_FIELDS:
             getattr(rb, name)[:kept] = np.roll(state["buffer"][name].numpy(), -pos, axis=0)[n - kept :]
     except (KeyError, RuntimeError, ValueError, TypeError, AttributeError) as err:
         cause = " ".join(str(err).split())  # torch's message runs over several lines: keep it on one
         raise ValueError(f"{path} is a damaged {TRAIN_STATE_FORMAT} file ({type(err).__name__}: {cause})") from None
+    for flag, (saved, given) in rates.items():  # said, as for the guidance horizon: a resume is how a training that diverged is given smaller ones
+        if saved != given:
+            print(f"resume: {flag} {given} replaces the training's {saved}")
     rb.size, rb.pos = kept, kept % rb.capacity
     if kept < n:
         print(f"resume: --jirl.buffer-size {rb.capacity} keeps the newest {kept} of the {n} saved transitions")
@@ -729,13 +734,20 @@ def train_holding(args: Train) -> dict:
     args = replace(args, jirl=replace(hp, guidance_steps=guidance))  # saved with the state
     hp = args.jirl
 
+    saved_step = counters["step"]
+
     def checkpoint(create: bool = False) -> None:
+        nonlocal saved_step
+        diverged = sac.divergence()
+        if diverged:  # checked at each pause, before the car acts with the new weights; the last sound state is kept
+            raise SystemExit(f"train: error: the training diverged by step {counters['step']}: {diverged}; {args.checkpoint} keeps step {saved_step}'s state")
         try:
             save_training_state(args.checkpoint, sac, rb, counters, args, create)
-        except CheckpointTaken:  # between the check above and now
+        except CheckpointTaken:  # made by another run after the exists() check in train_holding
             raise SystemExit(f"train: error: another run created {args.checkpoint} as this one started; pass another --checkpoint") from None
         except OSError as err:  # disk full, no permission: the run ends (the car stops in `finally`), saying why
             raise SystemExit(f"train: error: cannot write --checkpoint {args.checkpoint}: {err}") from None
+        saved_step = counters["step"]
 
     checkpoint(create=not args.resume)  # before the car is armed: a checkpoint that cannot be written fails now, not at the first pause
     try:

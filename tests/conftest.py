@@ -1,5 +1,6 @@
 """Shared test helpers: load an algorithm script as a module without running its main block; a full disk;
-and a check that no test leaves a signal handler changed."""
+the TensorBoard writers of a run ended in-process, closed; and a check that no test leaves a signal
+handler changed."""
 
 import builtins
 import errno
@@ -13,6 +14,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import torch.utils.tensorboard as tensorboard
 
 ROOT = Path(__file__).resolve().parent.parent
 CAR_TRAIN_FAST = ["--jirl.hidden-size", "16", "--jirl.batch-size", "16", "--jirl.learning-starts", "30"]  # a small agent for `deploy.jetracer train` in tests
@@ -86,3 +88,22 @@ def fill_the_disk_for(monkeypatch, name: str) -> None:
         return real_open(file, mode, *args, **kwargs)
 
     monkeypatch.setattr(builtins, "open", open_)
+
+
+@pytest.fixture
+def writers_closed(monkeypatch):
+    """A run that ends at set-up leaves its TensorBoard writer open, which is harmless in a process of its
+    own; in-process, its thread would write to runs/ relative to a directory the test has left. Closed
+    here, before monkeypatch changes back."""
+    opened = []
+
+    class Recorded(tensorboard.SummaryWriter):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            opened.append(self)
+
+    monkeypatch.setattr(tensorboard, "SummaryWriter", Recorded)
+    yield
+    assert opened, "the run made no writer through the patched class"
+    for writer in opened:
+        writer.close()

@@ -977,6 +977,46 @@ def test_a_checkpoint_that_cannot_be_written_mid_run_stops_the_car(tmp_path, mon
     assert not list(tmp_path.glob("*.tmp"))
 
 
+@pytest.mark.parametrize("learner", ["pause", "background"])
+def test_a_training_that_diverges_stops_the_car_at_the_next_pause_and_keeps_its_last_sound_state(learner, tmp_path, monkeypatch):
+    controllers = record_closed_controllers(monkeypatch)
+    state = tmp_path / "t.pt"
+    diverging = ["--jirl.q-lr", "1e6"]  # the critics' second update (one per pause from step 40) leaves them NaN
+    with pytest.raises(SystemExit) as ended:
+        jetracer.main(["train", "--total-steps", "2000", "--train-every", "40", "--gradient-steps", "1", "--learner", learner,
+                       "--checkpoint", str(state), "--log-dir", str(tmp_path / "logs"), *FAST, *diverging])  # fmt: skip
+    said = re.fullmatch(rf"train: error: the training diverged by step (\d+): NaN or infinite values in (.+); {re.escape(str(state))} keeps step (\d+)'s state", str(ended.value.code))
+    assert said, ended.value.code
+    diverged_by, kept = int(said[1]), int(said[3])
+    if learner == "pause":  # updates at the pauses of steps 40 and 80: found at 80's, before the car acts with it
+        assert (diverged_by, said[2], kept) == (80, "the critics, the target critics and the critics' optimizer", 40)
+    else:  # the learner's updates run beside the car: found at the first pause after they diverged
+        assert diverged_by % 40 == 0 and kept == diverged_by - 40 and "the critics" in said[2]
+    assert controllers[0].throttle == 0.0 and controllers[0].estop_latched  # the session was closed: STOP, ESTOP
+    hp = replace(jetracer.car_jirl_defaults(), hidden_size=16)
+    rb = jetracer.jirl.ReplayBuffer(100, jetracer.OBS_SIZE, 2, seed=0)
+    counters, _ = jetracer.load_training_state(str(state), jetracer.jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, hp), rb)  # a state a resume takes
+    assert counters["step"] == kept
+    jetracer.jirl.load_checkpoint(jetracer.policy_path(str(state)))  # and the policy beside it, for `run`
+
+
+def test_a_resumed_training_learns_at_the_rates_it_is_given_not_at_the_saved_ones(tmp_path, capsys):
+    def rates(path) -> list:  # the critics' optimizer's, then the actor's and the entropy coefficient's
+        sac = torch.load(path, weights_only=True)["sac"]
+        return [group["lr"] for name in ("q_optimizer", "actor_optimizer") for group in sac[name]["param_groups"]]
+
+    state, logs = tmp_path / "t.pt", str(tmp_path / "logs")
+    jetracer.main(["train", "--total-steps", "40", "--checkpoint", str(state), "--log-dir", logs, *FAST, "--jirl.q-lr", "0.01", "--jirl.policy-lr", "0.002"])
+    assert rates(state) == [0.01, 0.002, 0.01]
+    capsys.readouterr()
+    jetracer.main(["train", "--resume", "--total-steps", "80", "--checkpoint", str(state), "--log-dir", logs, *FAST, "--jirl.q-lr", "0.0005"])
+    policy_lr = jetracer.car_jirl_defaults().policy_lr  # not given: the default, as for every other setting
+    assert rates(state) == [0.0005, policy_lr, 0.0005]
+    out = capsys.readouterr().out
+    assert "resume: --jirl.q-lr 0.0005 replaces the training's 0.01\n" in out
+    assert f"resume: --jirl.policy-lr {policy_lr} replaces the training's 0.002\n" in out
+
+
 @pytest.mark.parametrize("mode", ["baseline", "train"])
 def test_logs_that_cannot_be_written_stop_the_car_and_training_keeps_its_state(mode, tmp_path, monkeypatch, capsys):
     from torch.utils.tensorboard import SummaryWriter

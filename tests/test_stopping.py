@@ -47,25 +47,6 @@ def as_in_a_terminal() -> None:
 
 
 @pytest.fixture
-def writers_closed(monkeypatch):
-    """A run that ends at set-up leaves its TensorBoard writer open, which is harmless in a process of its
-    own; in-process, its thread would write to runs/ relative to a directory the test has left. Closed
-    here, before monkeypatch changes back."""
-    opened = []
-
-    class Recorded(tensorboard.SummaryWriter):
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, **kwargs)
-            opened.append(self)
-
-    monkeypatch.setattr(tensorboard, "SummaryWriter", Recorded)
-    yield
-    assert opened, "the run made no writer through the patched class"
-    for writer in opened:
-        writer.close()
-
-
-@pytest.fixture
 def handlers():
     """SIGINT and SIGTERM handlers as in a terminal, by signal; afterwards, those the test found."""
     found = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -211,15 +192,16 @@ def test_flaw_names_what_makes_an_envs_return_unusable(sac):
 
 
 class DivergingPendulum(PendulumEnv):
-    """Pendulum-v1 whose episode from reset seed 3 (a run's third, at the default --seed 1) fails at its
-    50th step, or at the reset itself, as `how` says: it diverges ("nan"), raises an error of its own
-    ("raises": a simulator that lost its connection, after which it cannot close either), or returns an
-    observation missing a number ("shape": a robot's bridge that dropped a sensor's field), or, at the
-    step only, a termination flag of None ("flag": a field missing from the bridge's message)."""
+    """Pendulum-v1 whose episode from reset seed `failing_seed` (3: a run's third, at the default --seed
+    1) fails at its 50th step, or at the reset itself, as `how` says: it diverges ("nan"), raises an error
+    of its own ("raises": a simulator that lost its connection, after which it cannot close either), or
+    returns an observation missing a number ("shape": a robot's bridge that dropped a sensor's field),
+    or, at the step only, a termination flag of None ("flag": a field missing from the bridge's message)."""
 
     at_reset = False
     how = "nan"
     lost = False
+    failing_seed = 3
 
     def fail(self, obs: np.ndarray) -> np.ndarray:
         if self.how == "raises":
@@ -234,7 +216,7 @@ class DivergingPendulum(PendulumEnv):
 
     def reset(self, *, seed=None, options=None):
         obs, info = super().reset(seed=seed, options=options)
-        self.diverging, self.t = seed == 3, 0
+        self.diverging, self.t = seed == self.failing_seed, 0
         return (self.fail(obs) if self.diverging and self.at_reset else obs), info
 
     def step(self, action):
@@ -402,6 +384,21 @@ def test_an_env_failing_at_the_first_reset_is_a_one_line_error(script, how, tmp_
     with pytest.raises(SystemExit) as ended:
         runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
     assert ended.value.code == f"{script}: error: {env_failure(at_reset=True, how=how)}"
+
+
+@pytest.mark.filterwarnings("ignore:.*(NaN value|not within the observation space).*")
+@pytest.mark.parametrize("script", ["ppo_il", "trpo_il"])
+def test_an_env_failing_in_the_cloned_policys_evaluation_is_a_one_line_error(script, tmp_path, monkeypatch, writers_closed):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(DivergingPendulum, "at_reset", True)
+    monkeypatch.setattr(DivergingPendulum, "failing_seed", 1_000_001)  # the first evaluation episode's at --seed 1, measured only with regret on
+    args = [*SHORT_RUNS[script], "--env-id", "DivergingPendulum-v0", "--baseline", f"{__name__}:zero_torque", "--regret-estimator", "off", "--save-model"]
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
+    with pytest.raises(SystemExit) as ended:
+        runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
+    assert ended.value.code == f"{script}: error: DivergingPendulum-v0 returned a non-finite observation at reset seed 1000001"
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    assert (run_dir / f"{script}_cloned.cleanrl_model").is_file()  # saved before its evaluation failed
 
 
 class BaselineFailingAtCall:

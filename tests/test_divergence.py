@@ -1,0 +1,229 @@
+"""A training that diverges (a learning rate or a reward far too large) ends in one line that says so and
+names the parts holding a NaN or an infinity, before its NaN acts on the env, is learnt from or is
+logged; the car's training keeps the last state it saved before the divergence. Before, SAC's NaN
+action reached the env, which was blamed for it (or, on envs that ignore a NaN action, the run went on
+to the end), and JIRL, PPO+IL and TRPO+IL stopped with torch's traceback."""
+
+import math
+import re
+import runpy
+import sys
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from gymnasium.envs.classic_control.pendulum import PendulumEnv
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from conftest import ROOT, load_script
+from test_sac_script import SHORT_RUNS, scalars
+from test_stopping import without
+
+
+class RecordingPendulum(PendulumEnv):
+    """Pendulum-v1 that keeps, per instance in order of creation, every action it is given. With `scale`
+    set, its episode from reset seed 3 (a run's third, at --seed 1) pays `scale` times Pendulum's reward:
+    with 1e37 the rewards stay finite in float32 (1.6e38 at most), so CheckedEnv passes them, but their
+    returns do not, and a critic fitted to them diverges."""
+
+    instances: list = []
+    scale = 1.0
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.actions = []
+        RecordingPendulum.instances.append(self)
+
+    def reset(self, *, seed=None, options=None):
+        self.factor = self.scale if seed == 3 else 1.0
+        return super().reset(seed=seed, options=options)
+
+    def step(self, action):
+        self.actions.append(np.array(action, dtype=np.float64))
+        obs, reward, terminated, truncated, info = super().step(action)
+        return obs, reward * self.factor, terminated, truncated, info
+
+
+gym.register("RecordingPendulum-v0", entry_point=RecordingPendulum, max_episode_steps=200)
+
+
+@pytest.fixture
+def recorded(monkeypatch):
+    monkeypatch.setattr(RecordingPendulum, "instances", [])
+    return RecordingPendulum.instances
+
+
+TOO_LARGE_A_STEP = {"sac_continuous": ["--policy-lr", "1e8", "--q-lr", "1e8"], "jirl_sac_continuous": ["--policy-lr", "1e8", "--q-lr", "1e8"],
+                    "ppo_il": ["--learning-rate", "1e8", "--max-grad-norm", "1e12"]}  # fmt: skip
+SAC_ALL = "NaN or infinite values in the actor, the critics, the target critics, the critics' optimizer, the actor's optimizer and the entropy coefficient"
+PPO_ALL = "NaN or infinite weights in the policy's mean, the policy's log-std and the critic"
+# (script, cause, the reason given, the step the run stops at). A step too large: SAC and JIRL diverge some
+# steps after their updates start at --learning-starts 100. A reward too large: the third episode's steps
+# 401-600 (PPO and TRPO count from 1) fall in the fourth rollout of 128, whose update diverges. A NaN in
+# one head of the actor alone, or its mean head's weights and bias at 3e38 (finite, but not their sum),
+# put there by its second update (of step 100, the first): the other head is finite.
+DIVERGING = [("sac_continuous", "step", SAC_ALL, None), ("jirl_sac_continuous", "step", SAC_ALL, None),
+             *[(script, head, "NaN or infinite values in the actor", 101) for script in ("sac_continuous", "jirl_sac_continuous") for head in ("mean head", "log-std head")],
+             ("jirl_sac_continuous", "overflow", "the actor overflowed", 101),
+             ("ppo_il", "step", PPO_ALL, 128), ("ppo_il", "reward", PPO_ALL, 512), ("trpo_il", "reward", "NaN or infinite weights in the critic", 512)]  # fmt: skip
+
+
+def poison(tensor: torch.Tensor, value: float) -> None:
+    with torch.no_grad():
+        tensor.view(-1)[0] = value
+
+
+def poison_the_actor_at_its_second_step(monkeypatch, head: str) -> None:
+    real_step, calls = torch.optim.Adam.step, []
+
+    def step(self, *args, **kwargs):
+        loss = real_step(self, *args, **kwargs)
+        if len(self.param_groups) == 2:  # the actor's optimizer: its second group is the entropy coefficient
+            calls.append(self)
+            if len(calls) == 2:  # the actor's parameters end with fc_mean's weight and bias, then fc_logstd's
+                params = self.param_groups[0]["params"]
+                if head == "overflow":
+                    with torch.no_grad():
+                        params[-4].fill_(3e38), params[-3].fill_(3e38)
+                else:
+                    poison(params[-3 if head == "mean head" else -1], math.nan)
+        return loss
+
+    monkeypatch.setattr(torch.optim.Adam, "step", step)
+
+
+@pytest.mark.parametrize("script, cause, reason, step", DIVERGING)
+def test_a_diverging_training_ends_naming_what_diverged_before_its_nan_acts(script, cause, reason, step, tmp_path, monkeypatch, capsys, recorded):
+    monkeypatch.chdir(tmp_path)
+    if cause == "reward":
+        monkeypatch.setattr(RecordingPendulum, "scale", 1e37)
+    if cause.endswith("head") or cause == "overflow":
+        poison_the_actor_at_its_second_step(monkeypatch, cause)
+    args = [*without(SHORT_RUNS[script], "--total-timesteps"), "--total-timesteps", "1000", "--env-id", f"{__name__}:RecordingPendulum-v0",
+            "--baseline", "test_stopping:zero_torque", "--regret-estimator", "off", "--save-model", *(TOO_LARGE_A_STEP[script] if cause == "step" else [])]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
+    with pytest.raises(SystemExit) as ended:
+        runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
+    assert ended.value.code == 1
+    out, err = capsys.readouterr()
+    total = "1,000" if script.startswith(("sac", "jirl")) else "896"
+    stopped = re.search(rf"^{script}: error: the training diverged: {re.escape(reason)}: training stopped at step ([\d,]+) of {total};"
+                        " saving the model without evaluating it$", err, re.M)  # fmt: skip
+    assert stopped, err
+    at = int(stopped[1].replace(",", ""))
+    if step is not None:
+        assert at == step
+    else:  # SAC and JIRL: some steps after the updates start at --learning-starts 100
+        assert 100 < at < 1000
+    assert "Traceback" not in err and "returned a non-finite" not in err and "eval:" not in out
+    training_env = recorded[0]  # made first; PPO's and TRPO's imitation and their cloned policy's evaluation have envs of their own
+    assert len(training_env.actions) == at  # no action of the step it stopped at was applied
+    assert all(np.isfinite(a).all() for env in recorded for a in env.actions)  # no NaN ever reached an env
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    logged = scalars(run_dir)
+    assert all(math.isfinite(v) for tag, values in logged.items() for v in values if tag != "losses/explained_variance"), "a NaN was logged"
+    if script.endswith("_il"):  # the diverged update is not logged: the last one logged is the rollout's before
+        events = EventAccumulator(str(run_dir))
+        events.Reload()
+        logged_at = [e.step for e in events.Scalars("charts/SPS")] if "charts/SPS" in events.Tags()["scalars"] else []
+        assert logged_at == list(range(128, at, 128))
+    model = run_dir / f"{script}.cleanrl_model"  # saved as it is: refused by name when loaded, if a weight is NaN
+    if cause == "overflow":  # finite weights: it loads, and its deterministic action saturates
+        assert np.isfinite(load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)).all()
+    else:
+        with pytest.raises(ValueError, match=r"damaged .* checkpoint: its (actor|agent) holds a NaN or infinite weight$"):
+            load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)
+
+
+@pytest.mark.parametrize("script", ["sac_continuous", "jirl_sac_continuous"])
+def test_sac_names_each_part_whose_weights_or_moments_hold_a_nan_or_an_infinity(script):
+    module = load_script(script)
+    sac = module.SoftActorCritic(3, 1, module.Args(hidden_size=8, batch_size=4))
+    batch = tuple(torch.zeros(4, n) for n in (3, 1, 1, 3, 1))
+    sac.update(batch, 0)  # both optimizers hold moments
+    assert sac.divergence() == ""
+    poison(sac.actor.fc_logstd.bias, math.nan)
+    assert sac.divergence() == "NaN or infinite values in the actor"
+    poison(sac.q_target_params[-1], -math.inf)
+    assert sac.divergence() == "NaN or infinite values in the actor and the target critics"
+    poison(sac.q_optimizer.state[sac.q_params[0]]["exp_avg_sq"], math.inf)  # a squared gradient beyond float32
+    assert sac.divergence() == "NaN or infinite values in the actor, the target critics and the critics' optimizer"
+    poison(sac.log_alpha, math.inf)
+    poison(sac.q_params[0], math.nan)
+    poison(sac.actor_optimizer.state[sac.log_alpha]["exp_avg"], math.nan)
+    assert sac.divergence() == SAC_ALL
+
+
+@pytest.mark.parametrize("script", ["ppo_il", "trpo_il"])
+def test_the_gaussian_agent_names_each_part_that_holds_a_nan_or_an_infinity_and_a_degenerate_std(script):
+    module = load_script(script)
+    agent = module.Agent(3, 2, 8)
+    assert agent.divergence() == ""
+    for log_std, std in ((-200.0, 0.0), (100.0, math.inf)):  # finite, but exp() underflows or overflows in float32
+        with torch.no_grad():
+            agent.actor_logstd.copy_(torch.tensor([[0.5, log_std]]))
+        assert torch.exp(torch.tensor(log_std)).item() == std
+        assert agent.divergence() == f"a policy standard deviation of 0 or infinity (log-std [0.5, {log_std}])"
+    poison(agent.actor_logstd, math.nan)
+    assert agent.divergence() == "NaN or infinite weights in the policy's log-std"
+    poison(list(agent.critic.parameters())[-1], math.inf)
+    assert agent.divergence() == "NaN or infinite weights in the policy's log-std and the critic"
+    poison(list(agent.actor_mean.parameters())[2], -math.inf)
+    assert agent.divergence() == "NaN or infinite weights in the policy's mean, the policy's log-std and the critic"
+
+
+class NoLogs:
+    def add_scalar(self, *args, **kwargs) -> None:
+        pass
+
+
+@pytest.mark.parametrize("script", ["ppo_il", "trpo_il"])
+def test_imitation_that_diverges_is_an_error_naming_the_part(script):
+    module = load_script(script)
+    rng = np.random.default_rng(0)
+    obs, actions = rng.normal(size=(40, 3)).astype(np.float32), rng.uniform(-1, 1, size=(40, 1)).astype(np.float32)
+    returns = np.full(40, -np.inf, dtype=np.float32)  # what float32 made of returns beyond its range, fitted by the value function
+    args = module.Args(il_max_epochs=2, il_value_epochs=1)
+    with pytest.raises(ValueError, match=r"^imitation diverged: NaN or infinite weights in the critic$"):
+        module.imitate(module.Agent(3, 1, 8), obs, actions, returns, args, NoLogs(), rng)
+    module.imitate(module.Agent(3, 1, 8), obs, actions, np.full(40, -1e30, dtype=np.float32), args, NoLogs(), rng)  # large, finite: fitted
+
+
+class ConstantRewardPendulum(PendulumEnv):
+    reward = -1e37
+
+    def step(self, action):
+        obs, _, terminated, truncated, info = super().step(action)
+        return obs, self.reward, terminated, truncated, info
+
+
+gym.register("ConstantRewardPendulum-v0", entry_point=ConstantRewardPendulum, max_episode_steps=200)
+
+
+@pytest.mark.parametrize("script", ["ppo_il", "trpo_il"])
+def test_baseline_returns_beyond_float32_are_a_one_line_error_before_imitation(script, tmp_path, monkeypatch, writers_closed):
+    monkeypatch.chdir(tmp_path)
+    largest = 1e37 * sum(0.99**k for k in range(200))  # the first step's return-to-go in a 200-step episode of reward -1e37
+    assert largest > float(np.finfo(np.float32).max)
+    args = [*SHORT_RUNS[script], "--env-id", f"{__name__}:ConstantRewardPendulum-v0", "--gamma", "0.99", "--baseline", "test_stopping:zero_torque",
+            "--regret-estimator", "off", "--save-model"]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
+    with pytest.raises(SystemExit) as ended:
+        runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
+    assert ended.value.code == f"{script}: error: the baseline's discounted returns reach {largest:.3g}, beyond float32's range; scale the env's rewards down"
+    assert not list(tmp_path.glob("runs/*/*.cleanrl_model"))
+
+
+def test_trpos_line_search_rejects_a_trial_step_to_a_policy_that_is_no_distribution():
+    trpo = load_script("trpo_il")
+    torch.manual_seed(0)
+    agent = trpo.Agent(3, 1, 8)
+    obs, advantages = torch.randn(64, 3), torch.randn(64)
+    with torch.no_grad():
+        actions, logprobs, _, _ = agent.get_action_and_value(obs)
+    before = [p.clone() for p in agent.parameters()]
+    args = trpo.Args(max_kl=1e30)  # a region so wide that every trial step's standard deviation is 0 or infinite in float32
+    step = trpo.trpo_step(agent, obs, actions, logprobs, advantages, args)
+    assert step["accepted"] is False and step["kl"] == 0.0  # each rejected (its KL is not <= max_kl), not torch's error
+    assert all(torch.equal(a, b) for a, b in zip(agent.parameters(), before)) and agent.divergence() == ""
