@@ -317,7 +317,9 @@ def launch_submitit(todo: list[tuple[list[str], str]], args: Args) -> None:
         for cmd, folder in todo:
             Path(folder).mkdir(parents=True, exist_ok=True)  # the job clears an earlier attempt's logs as it starts (run_one)
             job = executor.submit(submitit.helpers.CommandFunction([*JOB_COMMAND, str(Path(__file__).resolve().parent), str(Path(folder).resolve()), *cmd]))
-            (Path(folder) / "JOB").write_text(f"{job.job_id}\n")  # a later call asks Slurm whether it still runs
+            job_file = Path(folder) / "JOB"  # a later call asks Slurm whether it still runs
+            job_file.with_name("JOB.tmp").write_text(f"{job.job_id}\n")
+            os.replace(job_file.with_name("JOB.tmp"), job_file)  # whole or absent: a reproduce.py killed here leaves no empty id
             folders[job] = folder
         start = time.time()
         for i, job in enumerate(submitit.helpers.as_completed(list(folders), poll_frequency=poll), 1):

@@ -379,7 +379,7 @@ def test_a_submitted_run_that_ends_after_its_watcher_has_gone_is_done(tmp_path, 
     folder = reproduce.run_dir(tmp_path / "work", "Pendulum-v1", "sac", 1)
     watcher = subprocess.Popen([sys.executable, "-c", WATCHER, str(ROOT / "benchmarks"), str(tmp_path / "work")])
     deadline = time.time() + 60
-    while not list((tmp_path / "work" / "submitit").glob("*_submitted.pkl")) and watcher.poll() is None and time.time() < deadline:
+    while not (folder / "JOB").exists() and watcher.poll() is None and time.time() < deadline:  # written once the job is submitted
         time.sleep(0.05)
     watcher.kill()  # as the job starts: it sleeps 4 s before it prints
     watcher.wait()
