@@ -861,7 +861,7 @@ if __name__ == "__main__":
             with torch.inference_mode():
                 action, _, _ = actor.get_action(torch.from_numpy(obs).float().unsqueeze(0))
             action = action[0].numpy()
-            if not math.isfinite(action.sum()):  # a diverged training: end before its NaN acts, naming it
+            if not math.isfinite(sum(action.tolist())):  # a diverged training: end before its NaN acts (numpy's sum here costs 7 µs more)
                 stop.end(f"{args.exp_name}: error: the training diverged: {sac.divergence() or 'the actor overflowed'}", 1)
                 break
 
