@@ -9,6 +9,11 @@
   every step against nothing, and its `add_scalar` against TensorBoard's own, on writers of their own
   in a temporary directory (at 1/100 of `--calls`: a scalar costs about 110 µs, and a run logs about
   one every 5 steps).
+- The training loops' checks for a diverged agent, as the loops write them: SAC's of the action its
+  actor returns, JIRL's of the policy's mean and log-std before it samples, each against the same query
+  without it, on a 64-unit actor (at 1/20 of `--calls`: a query costs about 100 µs). And PPO+IL's and
+  TRPO+IL's rollout call, whose `Normal` no longer validates its parameters (a NaN is found after the
+  update instead), against the same call with torch's validation.
 
 The wrappers come from `jirl_sac_continuous.py` (the four scripts share these definitions, a test checks).
 Each repeat times both sides back to back (which first alternates), the best of 3 runs of `--calls` calls each; prints the
@@ -49,10 +54,17 @@ def main() -> None:
     args = parser.parse_args()
 
     sys.path.insert(0, str(ROOT))
+    import math
+
     import gymnasium as gym
     import numpy as np
+    import torch
+    from torch.distributions.normal import Normal
 
     import jirl_sac_continuous as jirl
+    import ppo_il
+
+    torch.set_num_threads(1)
 
     class ConstantEnv(gym.Env):
         """Pendulum's spaces, and a step that returns the same finite observation and reward."""
@@ -86,12 +98,45 @@ def main() -> None:
     stop = jirl.StopRequest()
     stop.restore()  # its state only: no signal handlers
     step = iter(range(10**9))
+
+    actor, x = jirl.Actor(3, 1, 64), torch.from_numpy(np.array([[1.0, 0.0, 0.5]], dtype=np.float32))
+
+    def sac_action(check: bool) -> np.ndarray:
+        with torch.inference_mode():
+            action, _, _ = actor.get_action(x)
+        action = action[0].numpy()
+        if check and not math.isfinite(sum(action.tolist())):
+            raise ArithmeticError("diverged")
+        return action
+
+    def jirl_action(check: bool) -> np.ndarray:
+        with torch.inference_mode():
+            mean, log_std = actor(x)
+            if check and not math.isfinite(sum(mean[0].tolist() + log_std[0].tolist())):
+                raise ArithmeticError("diverged")
+            return torch.tanh(torch.normal(mean, log_std.exp()))[0].numpy()
+
+    agent = ppo_il.Agent(3, 1, 64)
+
+    def validated(obs: torch.Tensor):  # Agent.get_action_and_value before: torch checks the Normal's parameters
+        action_mean = agent.actor_mean(obs)
+        probs = Normal(action_mean, agent.actor_logstd.expand_as(action_mean).exp())
+        action = probs.sample()
+        return action, probs.log_prob(action).sum(1), probs.entropy().sum(1), agent.critic(obs)
+
+    def rollout_call(call):
+        with torch.no_grad():
+            return call(x)
+
     rows = [
         *[(f"CheckedEnv.step vs the bare step, {name}", new, old, args.calls) for name, (new, old) in sides.items()],
         ("ask_baseline vs the bare call", lambda: jirl.ask_baseline(baseline, obs), lambda: baseline(obs), args.calls),
         ("the loop's check of CheckedWriter vs nothing", lambda: checked_writer.failure and stop.reason is None, lambda: None, args.calls),
         ("CheckedWriter.add_scalar vs SummaryWriter's", lambda: checked_writer.add_scalar("a", 1.0, next(step)), lambda: writer.add_scalar("a", 1.0, next(step)),
          max(1, args.calls // 100)),
+        ("SAC's check of its action vs none", lambda: sac_action(True), lambda: sac_action(False), max(1, args.calls // 20)),
+        ("JIRL's check of its policy vs none", lambda: jirl_action(True), lambda: jirl_action(False), max(1, args.calls // 20)),
+        ("PPO's rollout call, unvalidated vs validated", lambda: rollout_call(agent.get_action_and_value), lambda: rollout_call(validated), max(1, args.calls // 20)),
     ]
     print("| check | the call it wraps | added per call: median | range |")
     print("|---|---|---|---|")
