@@ -652,6 +652,13 @@ class Actor(nn.Module):
         return y_t, log_prob.sum(1, keepdim=True), torch.tanh(mean)
 
 
+def all_finite(part: object) -> bool:
+    """Whether every tensor in a part of a state is finite, in the dicts an optimizer's state nests them in."""
+    if isinstance(part, dict):
+        return all(all_finite(x) for x in part.values())
+    return not torch.is_tensor(part) or bool(torch.isfinite(part).all())
+
+
 PART_NAMES = {"actor": "the actor", "qf": "the critics", "qf_target": "the target critics", "q_optimizer": "the critics' optimizer",
               "actor_optimizer": "the actor's optimizer", "log_alpha": "the entropy coefficient"}  # SoftActorCritic.state_dict()'s, in words
 
@@ -733,13 +740,7 @@ class SoftActorCritic:
         that diverged (a step or a reward too large), named so in the line that ends the run, and not taken
         for the env's fault, which its NaN action would become (CheckedEnv). The car's training checks the
         same before it saves, as a state holding either would not resume."""
-
-        def finite(part: object) -> bool:  # every tensor in a part, in the dicts an optimizer's state nests
-            if isinstance(part, dict):
-                return all(finite(x) for x in part.values())
-            return not torch.is_tensor(part) or bool(torch.isfinite(part).all())
-
-        names = [PART_NAMES[key] for key, part in self.state_dict().items() if not finite(part)]
+        names = [PART_NAMES[key] for key, part in self.state_dict().items() if not all_finite(part)]
         if not names:
             return ""
         return "NaN or infinite values in " + (" and ".join([", ".join(names[:-1]), names[-1]]) if len(names) > 1 else names[0])

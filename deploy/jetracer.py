@@ -601,11 +601,6 @@ def load_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
     def table(key: str) -> dict:  # a part that must be a dict, {} where it is missing or is not one
         return state[key] if isinstance(state.get(key), dict) else {}
 
-    def finite(part: object) -> bool:  # every tensor in a part, in dicts nested as an optimizer's state is
-        if isinstance(part, dict):
-            return all(finite(x) for x in part.values())
-        return not torch.is_tensor(part) or bool(torch.isfinite(part).all())
-
     missing = [key for key in ("sac", "buffer", "buffer_pos", "counters", "hidden_size") if key not in state]
     missing += [f"buffer {key}" for key in BUFFER_FIELDS if key not in table("buffer")]
     missing += [f"counter {key}" for key in TRAIN_COUNTERS if key not in table("counters")]
@@ -621,7 +616,7 @@ def load_training_state(path: str, sac: jirl.SoftActorCritic, rb: jirl.ReplayBuf
         if type(value) is not type(start) or not start <= value < math.inf:
             raise ValueError(f"{path} is a damaged {TRAIN_STATE_FORMAT} file: its counter {key} is {value!r}")
     for part, what in (("sac", "agent"), ("buffer", "replay buffer")):  # no training stores one: it would turn every weight to NaN
-        if not finite(state[part]):
+        if not jirl.all_finite(state[part]):
             raise ValueError(f"{path} is a damaged {TRAIN_STATE_FORMAT} file: its {what} holds a NaN or infinite value")
     # The rows are saved in ring order with the next write position; rolled, they run oldest to newest,
     # so a buffer of another capacity takes the newest rows and goes on writing after them.
