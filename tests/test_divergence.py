@@ -74,20 +74,24 @@ def poison(tensor: torch.Tensor, value: float) -> None:
         tensor.view(-1)[0] = value
 
 
-def poison_the_actor_at_its_second_step(monkeypatch, head: str) -> None:
+def poison_the_actor_at_its_second_step(monkeypatch, how: str) -> None:
+    """Right after the actor's second optimizer step, a NaN in the bias of its mean head ("mean head") or
+    of its log-std head ("log-std head"), or its mean head's weights and bias at 3e38 ("overflow"). The
+    actor's parameters are fc1's weight and bias, fc2's, fc_mean's and fc_logstd's, in that order."""
     real_step, calls = torch.optim.Adam.step, []
 
     def step(self, *args, **kwargs):
         loss = real_step(self, *args, **kwargs)
         if len(self.param_groups) == 2:  # the actor's optimizer: its second group is the entropy coefficient
             calls.append(self)
-            if len(calls) == 2:  # the actor's parameters end with fc_mean's weight and bias, then fc_logstd's
+            if len(calls) == 2:
                 params = self.param_groups[0]["params"]
-                if head == "overflow":
+                if how == "overflow":
                     with torch.no_grad():
-                        params[-4].fill_(3e38), params[-3].fill_(3e38)
+                        params[-4].fill_(3e38)
+                        params[-3].fill_(3e38)
                 else:
-                    poison(params[-3 if head == "mean head" else -1], math.nan)
+                    poison(params[-3 if how == "mean head" else -1], math.nan)
         return loss
 
     monkeypatch.setattr(torch.optim.Adam, "step", step)
