@@ -14,6 +14,10 @@
   without it, on a 64-unit actor (at 1/20 of `--calls`: a query costs about 100 µs). And PPO+IL's and
   TRPO+IL's rollout call, whose `Normal` no longer validates its parameters (a NaN is found after the
   update instead), against the same call with torch's validation.
+- The car's check at each pause of the actor's output on the 256 latest stored observations
+  (`deploy.jetracer.overflow`), and, for scale, one of the pause's 200 gradient steps, each against
+  nothing, at the car's defaults (64 units, a batch of 64; at 1/1000 of `--calls`). The car's check at
+  every step is JIRL's, above.
 
 The wrappers come from `jirl_sac_continuous.py` (the four scripts share these definitions, a test checks).
 Each repeat times both sides back to back (which first alternates), the best of 3 runs of `--calls` calls each; prints the
@@ -128,6 +132,16 @@ def main() -> None:
         with torch.no_grad():
             return call(x)
 
+    from deploy import jetracer
+
+    car_hp = jetracer.car_jirl_defaults()
+    car = jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, car_hp)
+    car_rb = jirl.ReplayBuffer(car_hp.buffer_size, jetracer.OBS_SIZE, 2, seed=0)
+    rng = np.random.default_rng(0)
+    for _ in range(1_000):  # lane masks in [0, 1] and previous actions in [-1, 1], as the car stores them
+        car_rb.add(rng.random(jetracer.OBS_SIZE, dtype=np.float32), rng.uniform(-1, 1, 2), 1.0, rng.random(jetracer.OBS_SIZE, dtype=np.float32), False)
+    updates = iter(range(10**9))
+
     rows = [
         *[(f"CheckedEnv.step vs the bare step, {name}", new, old, args.calls) for name, (new, old) in sides.items()],
         ("ask_baseline vs the bare call", lambda: jirl.ask_baseline(baseline, obs), lambda: baseline(obs), args.calls),
@@ -137,6 +151,8 @@ def main() -> None:
         ("SAC's check of its action vs none", lambda: sac_action(True), lambda: sac_action(False), max(1, args.calls // 20)),
         ("JIRL's check of its policy vs none", lambda: jirl_action(True), lambda: jirl_action(False), max(1, args.calls // 20)),
         ("PPO's rollout call, unvalidated vs validated", lambda: rollout_call(agent.get_action_and_value), lambda: rollout_call(validated), max(1, args.calls // 20)),
+        ("the car's pause check on 256 stored observations vs nothing", lambda: jetracer.overflow(car.actor, car_rb), lambda: None, max(1, args.calls // 1000)),
+        ("a gradient step of the car's pause vs nothing", lambda: car.update(car_rb.sample(car_hp.batch_size), next(updates)), lambda: None, max(1, args.calls // 1000)),
     ]
     print("| check | the call it wraps | added per call: median | range |")
     print("|---|---|---|---|")

@@ -47,6 +47,7 @@ TRAIN_COUNTERS = {"step": 0, "fabricated_transitions": 0, "control_switches": 0,
                   "paired_regret_per_step": 0.0, "updates": 0}  # fmt: skip
 SENDS_PER_PERIOD = 2.5  # the link sends this many frames per control period (DRIVE or STOP, feeding the watchdog)
 CAMERA_LOST_S = 2.0  # stale frames for this long end the run: the camera is gone (or a recorded video ended)
+OVERFLOW_ROWS = 256  # the latest stored observations a pause runs the actor on before saving (0.2 ms at 64 units: BENCHMARKS)
 
 
 @dataclass
@@ -460,7 +461,13 @@ def drive(session: CarSession, policy: Callable[[np.ndarray], np.ndarray], steps
         obs = session.observe()
         if obs is not None:
             action = session.human_action()
-            commands = session.act(policy(obs) if action is None else action)
+            if action is None:
+                action = policy(obs)
+                if not np.isfinite(action).all():  # the safety filter would STOP on it, step after step, in silence
+                    session.link.stop()
+                    session.end_on_error(f"the policy's action at step {step} is {action.tolist()}, not finite; stopping")
+                    break
+            commands = session.act(action)
             if session.stop_requested:  # e-stopped or disarmed in this period: the car did not take the action
                 break
             off_track = session.world is not None and session.world.off_track
@@ -733,7 +740,7 @@ def train_holding(args: Train) -> dict:
 
     def checkpoint(create: bool = False) -> None:
         nonlocal saved_step
-        diverged = sac.divergence()
+        diverged = sac.divergence() or overflow(sac.actor, rb)
         if diverged:  # checked at each pause, before the car acts with the new weights; the last sound state is kept
             raise SystemExit(f"train: error: the training diverged by step {counters['step']}: {diverged}; {args.checkpoint} keeps step {saved_step}'s state")
         try:
@@ -833,6 +840,9 @@ def train_holding(args: Train) -> dict:
             baseline_action = human if human is not None else follower(obs)
             with torch.inference_mode():
                 mean, log_std = acting(torch.from_numpy(obs).unsqueeze(0))
+                if not math.isfinite(sum(mean[0].tolist() + log_std[0].tolist())):  # as the script: end before the NaN is sampled, gated or stored
+                    raise SystemExit(f"train: error: the training diverged by step {step}: the actor overflowed on this step's observation;"
+                                     f" {args.checkpoint} keeps step {saved_step}'s state, with this actor")
                 rl_action = torch.tanh(torch.normal(mean, log_std.exp()))[0].numpy()
             mean, log_std = mean[0].numpy().astype(np.float64), log_std[0].numpy().astype(np.float64)
             if human is not None:
@@ -892,6 +902,19 @@ def train_holding(args: Train) -> dict:
     if session.failed:  # the state is saved; the status says the training did not end as asked
         raise SystemExit(1)
     return counters
+
+
+def overflow(actor, rb: jirl.ReplayBuffer, rows: int = OVERFLOW_ROWS) -> str:
+    """'' unless the actor's mean or log-std overflows on the latest `rows` stored observations: finite
+    weights large enough overflow float32, which the weights' own check cannot see."""
+    import torch
+
+    latest = (rb.pos - 1 - np.arange(min(rows, rb.size))) % rb.capacity
+    with torch.inference_mode():
+        mean, log_std = actor(torch.from_numpy(rb.obs[latest]))
+    if bool(torch.isfinite(mean).all() and torch.isfinite(log_std).all()):
+        return ""
+    return f"the actor overflows on some of the {len(latest)} latest stored observations"
 
 
 def learning(step: int, rb: jirl.ReplayBuffer, hp: jirl.Args) -> bool:

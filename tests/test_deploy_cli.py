@@ -2,6 +2,7 @@
 
 import copy
 import errno
+import math
 import os
 import re
 import signal
@@ -998,6 +999,124 @@ def test_a_training_that_diverges_stops_the_car_at_the_next_pause_and_keeps_its_
     counters, _ = jetracer.load_training_state(str(state), jetracer.jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, hp), rb)  # a state a resume takes
     assert counters["step"] == kept
     jetracer.jirl.load_checkpoint(jetracer.policy_path(str(state)))  # and the policy beside it, for `run`
+
+
+def overflow_the_actor(weights: dict, head: str) -> None:
+    """Finite weights whose output is NaN: every unit of the second layer at 2, and `head`'s weights at
+    +-3e38 in turn, so that its products are +-inf in float32 and their sum NaN."""
+    with torch.no_grad():
+        weights["fc2.weight"].zero_()
+        weights["fc2.bias"].fill_(2.0)
+        w = weights[f"{head}.weight"]
+        w.copy_(torch.where(torch.arange(w.numel()).view_as(w) % 2 == 0, 3e38, -3e38))
+    assert all(torch.isfinite(w).all() for w in weights.values())
+
+
+def record_the_cars_actions(monkeypatch) -> list:
+    """The step count of every action the car was sent, and every replay row stored, checked finite."""
+    acted, real_act, real_add = [], jetracer.CarSession.act, jetracer.jirl.ReplayBuffer.add
+
+    def add(self, obs, action, reward, next_obs, *args, **kwargs):
+        assert np.isfinite(action).all() and math.isfinite(reward), "a NaN was stored"
+        return real_add(self, obs, action, reward, next_obs, *args, **kwargs)
+
+    monkeypatch.setattr(jetracer.CarSession, "act", lambda self, action: acted.append(action) or real_act(self, action))
+    monkeypatch.setattr(jetracer.jirl.ReplayBuffer, "add", add)
+    return acted
+
+
+@pytest.mark.parametrize("learner", ["pause", "background"])
+@pytest.mark.parametrize("head", ["fc_mean", "fc_logstd"])
+def test_an_update_whose_actor_overflows_is_not_saved_and_the_car_never_acts_with_it(learner, head, tmp_path, monkeypatch):
+    """Finite weights pass the check of weights and moments; their output on the stored observations does not."""
+    real_update, updates = jetracer.jirl.SoftActorCritic.update, []
+
+    def update(self, batch, i):
+        losses = real_update(self, batch, i)
+        updates.append(i)
+        if len(updates) == 4:  # the last update of the step-80 pause (two per pause from step 40): none learns from its output
+            overflow_the_actor(dict(self.actor.named_parameters()), head)
+        return losses
+
+    monkeypatch.setattr(jetracer.jirl.SoftActorCritic, "update", update)
+    controllers, acted = record_closed_controllers(monkeypatch), record_the_cars_actions(monkeypatch)
+    state = tmp_path / "t.pt"
+    with pytest.raises(SystemExit) as ended:
+        jetracer.main(["train", "--total-steps", "400", "--train-every", "40", "--gradient-steps", "2", "--learner", learner,
+                       "--checkpoint", str(state), "--log-dir", str(tmp_path / "logs"), *FAST])  # fmt: skip
+    said = re.fullmatch(rf"train: error: the training diverged by step (\d+): the actor overflows on some of the (\d+) latest stored observations;"
+                        rf" {re.escape(str(state))} keeps step (\d+)'s state", str(ended.value.code))  # fmt: skip
+    assert said, ended.value.code
+    diverged_by, rows, kept = int(said[1]), int(said[2]), int(said[3])
+    if learner == "pause":  # found at the pause that made it, before the car acts with it
+        assert (diverged_by, kept, len(acted)) == (80, 40, 80)
+    else:  # the learner updates beside the car; the loop's copy of the actor takes its weights at a pause, once checked
+        assert diverged_by % 40 == 0 and kept == diverged_by - 40 and len(acted) == diverged_by
+    assert 0 < rows <= jetracer.OVERFLOW_ROWS
+    assert controllers[0].throttle == 0.0 and controllers[0].estop_latched
+    sac = jetracer.jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, replace(jetracer.car_jirl_defaults(), hidden_size=16))
+    rb = jetracer.jirl.ReplayBuffer(1000, jetracer.OBS_SIZE, 2, seed=0)
+    assert jetracer.load_training_state(str(state), sac, rb)[0]["step"] == kept
+    assert jetracer.overflow(sac.actor, rb) == ""  # the state kept is one whose actor a resume can drive with
+
+
+def test_the_pauses_overflow_check_runs_the_actor_on_the_latest_stored_observations():
+    rb = jetracer.jirl.ReplayBuffer(10, 1, 2, seed=0)
+    for i in range(15):  # the ring has wrapped: rows 5 to 14 are stored, 14 the latest
+        rb.add(np.array([i], np.float32), np.zeros(2), 0.0, np.zeros(1), False)
+
+    def overflowing_on(n: int) -> Callable:  # an actor whose mean is infinite on observation n alone
+        return lambda obs: (torch.where(obs == n, math.inf, 0.0).expand(-1, 2), torch.zeros(len(obs), 2))
+
+    assert [jetracer.overflow(overflowing_on(n), rb, rows=3) for n in (11, 12, 14)] == ["", *["the actor overflows on some of the 3 latest stored observations"] * 2]
+    assert jetracer.overflow(overflowing_on(5), rb) == "the actor overflows on some of the 10 latest stored observations"  # all there are
+    assert jetracer.overflow(overflowing_on(4), rb) == ""  # overwritten
+
+
+@pytest.mark.parametrize("head", ["fc_mean", "fc_logstd"])
+def test_an_actor_that_overflows_on_a_new_observation_ends_the_training_before_its_output_acts_or_is_stored(head, tmp_path, monkeypatch):
+    """The pause's check sees the stored observations only; the loop checks each new one as the script does."""
+    real_save = jetracer.save_training_state
+
+    def save(path, sac, rb, counters, args, create=False):
+        real_save(path, sac, rb, counters, args, create)
+        if counters["step"] == 40:  # after the pause's checks and its save: as if only step 40's observation made it overflow
+            overflow_the_actor(dict(sac.actor.named_parameters()), head)
+
+    monkeypatch.setattr(jetracer, "save_training_state", save)
+    controllers, acted = record_closed_controllers(monkeypatch), record_the_cars_actions(monkeypatch)
+    state = tmp_path / "t.pt"
+    with pytest.raises(SystemExit, match=rf"^train: error: the training diverged by step 40: the actor overflowed on this step's observation;"
+                                         rf" {re.escape(str(state))} keeps step 40's state, with this actor$"):  # fmt: skip
+        jetracer.main(["train", "--total-steps", "400", "--train-every", "40", "--gradient-steps", "2",
+                       "--checkpoint", str(state), "--log-dir", str(tmp_path / "logs"), *FAST])  # fmt: skip
+    assert len(acted) == 40  # step 40's action was neither taken nor stored
+    assert controllers[0].throttle == 0.0 and controllers[0].estop_latched
+
+
+def test_run_ends_on_a_policy_whose_action_is_not_finite_rather_than_stop_the_car_in_silence(tmp_path, monkeypatch, capsys):
+    state = tmp_path / "t.pt"
+    jetracer.main(["train", "--total-steps", "40", "--checkpoint", str(state), "--log-dir", str(tmp_path / "logs"), *FAST])
+    policy = jetracer.policy_path(str(state))
+    checkpoint = torch.load(policy, weights_only=True)
+    overflow_the_actor(checkpoint["actor"], "fc_mean")
+    torch.save(checkpoint, policy)  # its weights are finite: it loads
+    controllers, acted = record_closed_controllers(monkeypatch), record_the_cars_actions(monkeypatch)
+    capsys.readouterr()
+    exits_with_status_1(lambda: jetracer.run(jetracer.Run(checkpoint=policy, steps=50, log_dir=str(tmp_path))))
+    out, err = capsys.readouterr()
+    assert "run: error: the policy's action at step 0 is [nan, nan], not finite; stopping\n" in err
+    assert reported_steps(out, "run") == 0 and acted == []
+    assert controllers[0].throttle == 0.0 and controllers[0].estop_latched
+    events, real_stop, real_log = [], jetracer.HostLink.stop, jetracer.CarSession.log  # a policy that fails as the car drives
+    monkeypatch.setattr(jetracer.HostLink, "stop", lambda self: events.append("stop") or real_stop(self))
+    monkeypatch.setattr(jetracer.CarSession, "log", lambda self, step: events.append("log") or real_log(self, step))
+    driving = lambda obs: np.array([0.0, 0.0 if len(acted) < 10 else math.nan], np.float32)  # noqa: E731
+    exits_with_status_1(lambda: jetracer.drive_and_report(jetracer.Run(log_dir=str(tmp_path)), "run", driving, 50))
+    out, err = capsys.readouterr()
+    assert "run: error: the policy's action at step 10 is [0.0, nan], not finite; stopping\n" in err
+    assert reported_steps(out, "run") == 10 and len(acted) == 10
+    assert events[:3] == ["log", "stop", "log"], events  # step 0's log; the car stopped at once, before the last log and the close
 
 
 def test_a_resumed_training_learns_at_the_rates_it_is_given_not_at_the_saved_ones(tmp_path, capsys):
