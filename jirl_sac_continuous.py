@@ -871,7 +871,10 @@ def evaluate(path: str, env_id: str, episodes: int, seed: int) -> list[float]:
         while not done:
             with torch.inference_mode():
                 _, _, action = actor.get_action(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0))
-            obs, reward, terminated, truncated, _ = env.step(to_env_units(action[0].numpy(), low, high))
+            action = action[0].numpy()
+            if not np.isfinite(action).all():  # finite weights whose output overflows float32: not the env's fault, which its NaN would become
+                raise ValueError(f"the policy's action at step {steps} of evaluation episode {i} is {action.tolist()}, not finite: its network overflows float32 there")
+            obs, reward, terminated, truncated, _ = env.step(to_env_units(action, low, high))
             episode_return += float(reward)
             done, steps = terminated or truncated, steps + 1
             if not done and steps == EPISODE_LIMIT:  # a policy that never fails would run for ever

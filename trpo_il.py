@@ -743,6 +743,8 @@ def evaluate(path: str, env_id: str, episodes: int, seed: int) -> list[float]:
             x = obs_rms.normalize(obs) if obs_rms is not None else obs.astype(np.float32)
             with torch.inference_mode():
                 action = agent.actor_mean(torch.from_numpy(x).unsqueeze(0))[0].numpy()
+            if not np.isfinite(action).all():  # finite weights whose output overflows float32: not the env's fault, which its NaN would become
+                raise ValueError(f"the policy's action at step {steps} of evaluation episode {i} is {action.tolist()}, not finite: its network overflows float32 there")
             obs, reward, terminated, truncated, _ = env.step(to_env_units(action, low, high))
             episode_return += float(reward)
             done, steps = terminated or truncated, steps + 1

@@ -65,7 +65,7 @@ PPO_ALL = "NaN or infinite weights in the policy's mean, the policy's log-std an
 # put there by its second update (of step 100, the first): the other head is finite.
 DIVERGING = [("sac_continuous", "step", SAC_ALL, None), ("jirl_sac_continuous", "step", SAC_ALL, None),
              *[(script, head, "NaN or infinite values in the actor", 101) for script in ("sac_continuous", "jirl_sac_continuous") for head in ("mean head", "log-std head")],
-             ("jirl_sac_continuous", "overflow", "the actor overflowed", 101),
+             ("jirl_sac_continuous", "overflow", "the actor overflowed", 101), ("sac_continuous", "overflow to NaN", "the actor overflowed", 101),
              ("ppo_il", "step", PPO_ALL, 128), ("ppo_il", "reward", PPO_ALL, 512), ("trpo_il", "reward", "NaN or infinite weights in the critic", 512)]  # fmt: skip
 
 
@@ -76,7 +76,9 @@ def poison(tensor: torch.Tensor, value: float) -> None:
 
 def poison_the_actor_at_its_second_step(monkeypatch, how: str) -> None:
     """Right after the actor's second optimizer step, a NaN in the bias of its mean head ("mean head") or
-    of its log-std head ("log-std head"), or its mean head's weights and bias at 3e38 ("overflow"). The
+    of its log-std head ("log-std head"), its mean head's weights and bias at 3e38 ("overflow": an
+    infinite mean, which SAC's tanh turns into a finite action), or fc2's units all at 2 and the mean
+    head's weights at 3e38 and -3e38 in turn ("overflow to NaN": a NaN mean, and SAC's action NaN). The
     actor's parameters are fc1's weight and bias, fc2's, fc_mean's and fc_logstd's, in that order."""
     real_step, calls = torch.optim.Adam.step, []
 
@@ -90,6 +92,11 @@ def poison_the_actor_at_its_second_step(monkeypatch, how: str) -> None:
                     with torch.no_grad():
                         params[-4].fill_(3e38)
                         params[-3].fill_(3e38)
+                elif how == "overflow to NaN":
+                    with torch.no_grad():
+                        params[2].zero_()
+                        params[3].fill_(2.0)
+                        params[-4].copy_(torch.tensor([3e38, -3e38]).repeat(params[-4].numel() // 2).view_as(params[-4]))
                 else:
                     poison(params[-3 if how == "mean head" else -1], math.nan)
         return loss
@@ -102,7 +109,7 @@ def test_a_diverging_training_ends_naming_what_diverged_before_its_nan_acts(scri
     monkeypatch.chdir(tmp_path)
     if cause == "reward":
         monkeypatch.setattr(RecordingPendulum, "scale", 1e37)
-    if cause.endswith("head") or cause == "overflow":
+    if cause.endswith("head") or cause.startswith("overflow"):
         poison_the_actor_at_its_second_step(monkeypatch, cause)
     args = [*without(SHORT_RUNS[script], "--total-timesteps"), "--total-timesteps", "1000", "--env-id", f"{__name__}:RecordingPendulum-v0",
             "--baseline", "test_stopping:zero_torque", "--regret-estimator", "off", "--save-model", *(TOO_LARGE_A_STEP[script] if cause == "step" else [])]  # fmt: skip
@@ -135,6 +142,9 @@ def test_a_diverging_training_ends_naming_what_diverged_before_its_nan_acts(scri
     model = run_dir / f"{script}.cleanrl_model"  # saved as it is: refused by name when loaded, if a weight is NaN
     if cause == "overflow":  # finite weights: it loads, and its deterministic action saturates
         assert np.isfinite(load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)).all()
+    elif cause == "overflow to NaN":  # it loads, and its evaluation refuses the NaN action before the env is blamed for it
+        with pytest.raises(ValueError, match=r"^the policy's action at step 0 of evaluation episode 0 is \[nan\], not finite: its network overflows float32 there$"):
+            load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)
     else:
         with pytest.raises(ValueError, match=r"damaged .* checkpoint: its (actor|agent) holds a NaN or infinite weight$"):
             load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)

@@ -194,6 +194,21 @@ def test_a_checkpoint_holding_a_value_no_sound_checkpoint_holds_is_damaged_in_on
             script.evaluate(str(damaged), "Pendulum-v1", 1, 0)
         assert str(raised.value) == f"{damaged} is a damaged {script.CHECKPOINT_FORMAT} checkpoint: {damage}", (key, value)
     assert len(script.evaluate(str(path), "Pendulum-v1", 1, 0)) == 1
+    overflowing = {name: w.clone() for name, w in saved[weights].items()}  # finite weights whose action is not: sound, and refused as it acts
+    with torch.no_grad():
+        if weights == "actor":  # every unit of fc2 at 2 after the ReLU: each product of the mean head is +-inf alone, their sum NaN
+            overflowing["fc2.weight"].zero_()
+            overflowing["fc2.bias"].fill_(2.0)
+            overflowing["fc_mean.weight"].copy_(torch.tensor([3e38, -3e38] * 4).view(1, 8))
+        else:  # the tanh units at 0.96: 8 products of 2.9e38 sum beyond float32
+            overflowing["actor_mean.2.weight"].zero_()
+            overflowing["actor_mean.2.bias"].fill_(2.0)
+            overflowing["actor_mean.4.weight"].fill_(3e38)
+    torch.save({**saved, weights: overflowing}, tmp_path / "overflowing.cleanrl_model")
+    with pytest.raises(ValueError) as raised:  # before, the NaN reached Pendulum, and the env was blamed for it
+        script.evaluate(str(tmp_path / "overflowing.cleanrl_model"), "Pendulum-v1", 1, 0)
+    action = "[nan]" if weights == "actor" else "[inf]"
+    assert str(raised.value) == f"the policy's action at step 0 of evaluation episode 0 is {action}, not finite: its network overflows float32 there"
     torch.save({**saved, "action_low": (-2,), "action_high": (2.0,)}, tmp_path / "tuples.cleanrl_model")  # a tuple, an int bound (an int Box's): alike
     assert script.evaluate(str(tmp_path / "tuples.cleanrl_model"), "Pendulum-v1", 1, 0) == script.evaluate(str(path), "Pendulum-v1", 1, 0)
     if weights == "agent":  # saved without observation normalization: neither statistic
