@@ -1,6 +1,6 @@
 """Shared test helpers: load an algorithm script as a module without running its main block; a full disk;
-the TensorBoard writers of a run ended in-process, closed; and a check that no test leaves a signal
-handler changed."""
+the TensorBoard writers of a run ended in-process, closed; an actor whose finite weights give NaN; and a
+check that no test leaves a signal handler changed."""
 
 import builtins
 import errno
@@ -75,6 +75,18 @@ class FullDisk(io.FileIO):
             super().write(data[: max(0, self.room - self.tell())])
             raise OSError(errno.ENOSPC, "No space left on device")
         return super().write(data)
+
+
+def overflow_the_actor(weights: dict, head: str = "fc_mean") -> None:
+    """A SAC actor's weights (named as in its state dict), made finite weights whose output is NaN: every
+    unit of fc2 at 2 after the ReLU, and `head`'s weights at 3e38 and -3e38 in turn, so that each of its
+    products is +-inf in float32 and their sum NaN, in any order of summation."""
+    with torch.no_grad():
+        weights["fc2.weight"].zero_()
+        weights["fc2.bias"].fill_(2.0)
+        w = weights[f"{head}.weight"]
+        w.copy_(torch.tensor([3e38, -3e38]).repeat(w.numel() // 2).view_as(w))
+    assert all(bool(torch.isfinite(w).all()) for w in weights.values())
 
 
 def fill_the_disk_for(monkeypatch, name: str) -> None:

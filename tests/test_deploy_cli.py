@@ -20,7 +20,7 @@ import pytest
 import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from conftest import CAR_TRAIN_FAST as FAST, ROOT, fill_the_disk_for
+from conftest import CAR_TRAIN_FAST as FAST, ROOT, fill_the_disk_for, overflow_the_actor
 
 jetracer = pytest.importorskip("deploy.jetracer")
 from envs.car_interface import ActionMapping  # noqa: E402
@@ -999,17 +999,6 @@ def test_a_training_that_diverges_stops_the_car_at_the_next_pause_and_keeps_its_
     counters, _ = jetracer.load_training_state(str(state), jetracer.jirl.SoftActorCritic(jetracer.OBS_SIZE, 2, hp), rb)  # a state a resume takes
     assert counters["step"] == kept
     jetracer.jirl.load_checkpoint(jetracer.policy_path(str(state)))  # and the policy beside it, for `run`
-
-
-def overflow_the_actor(weights: dict, head: str) -> None:
-    """Finite weights whose output is NaN: every unit of the second layer at 2, and `head`'s weights at
-    +-3e38 in turn, so that its products are +-inf in float32 and their sum NaN."""
-    with torch.no_grad():
-        weights["fc2.weight"].zero_()
-        weights["fc2.bias"].fill_(2.0)
-        w = weights[f"{head}.weight"]
-        w.copy_(torch.where(torch.arange(w.numel()).view_as(w) % 2 == 0, 3e38, -3e38))
-    assert all(torch.isfinite(w).all() for w in weights.values())
 
 
 def record_the_cars_actions(monkeypatch) -> list:

@@ -16,7 +16,7 @@ import torch
 from gymnasium.envs.classic_control.pendulum import PendulumEnv
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from conftest import ROOT, load_script
+from conftest import ROOT, load_script, overflow_the_actor
 from test_sac_script import SHORT_RUNS, scalars
 from test_stopping import without
 
@@ -77,8 +77,8 @@ def poison(tensor: torch.Tensor, value: float) -> None:
 def poison_the_actor_at_its_second_step(monkeypatch, how: str) -> None:
     """Right after the actor's second optimizer step, a NaN in the bias of its mean head ("mean head") or
     of its log-std head ("log-std head"), its mean head's weights and bias at 3e38 ("overflow": an
-    infinite mean, which SAC's tanh turns into a finite action), or fc2's units all at 2 and the mean
-    head's weights at 3e38 and -3e38 in turn ("overflow to NaN": a NaN mean, and SAC's action NaN). The
+    infinite mean, which SAC's tanh turns into a finite action), or `overflow_the_actor` ("overflow to
+    NaN": a NaN mean, and SAC's action NaN). The
     actor's parameters are fc1's weight and bias, fc2's, fc_mean's and fc_logstd's, in that order."""
     real_step, calls = torch.optim.Adam.step, []
 
@@ -93,10 +93,7 @@ def poison_the_actor_at_its_second_step(monkeypatch, how: str) -> None:
                         params[-4].fill_(3e38)
                         params[-3].fill_(3e38)
                 elif how == "overflow to NaN":
-                    with torch.no_grad():
-                        params[2].zero_()
-                        params[3].fill_(2.0)
-                        params[-4].copy_(torch.tensor([3e38, -3e38]).repeat(params[-4].numel() // 2).view_as(params[-4]))
+                    overflow_the_actor(dict(zip([f"{layer}.{kind}" for layer in ("fc1", "fc2", "fc_mean", "fc_logstd") for kind in ("weight", "bias")], params)))
                 else:
                     poison(params[-3 if how == "mean head" else -1], math.nan)
         return loss

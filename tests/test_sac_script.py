@@ -17,7 +17,7 @@ import torch
 from gymnasium.envs.classic_control.pendulum import PendulumEnv
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from conftest import ROOT, fill_the_disk_for, load_script, small_checkpoint
+from conftest import ROOT, fill_the_disk_for, load_script, overflow_the_actor, small_checkpoint
 
 TINY = ["--hidden-size", "32", "--batch-size", "32", "--log-every", "50"]
 
@@ -195,12 +195,10 @@ def test_a_checkpoint_holding_a_value_no_sound_checkpoint_holds_is_damaged_in_on
         assert str(raised.value) == f"{damaged} is a damaged {script.CHECKPOINT_FORMAT} checkpoint: {damage}", (key, value)
     assert len(script.evaluate(str(path), "Pendulum-v1", 1, 0)) == 1
     overflowing = {name: w.clone() for name, w in saved[weights].items()}  # finite weights whose action is not: sound, and refused as it acts
-    with torch.no_grad():
-        if weights == "actor":  # every unit of fc2 at 2 after the ReLU: each product of the mean head is +-inf alone, their sum NaN
-            overflowing["fc2.weight"].zero_()
-            overflowing["fc2.bias"].fill_(2.0)
-            overflowing["fc_mean.weight"].copy_(torch.tensor([3e38, -3e38] * 4).view(1, 8))
-        else:  # the tanh units at 0.96: 8 products of 2.9e38 sum beyond float32
+    if weights == "actor":
+        overflow_the_actor(overflowing)
+    else:  # the tanh units at 0.96: 8 products of 2.9e38 sum beyond float32
+        with torch.no_grad():
             overflowing["actor_mean.2.weight"].zero_()
             overflowing["actor_mean.2.bias"].fill_(2.0)
             overflowing["actor_mean.4.weight"].fill_(3e38)
