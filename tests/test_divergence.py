@@ -66,7 +66,8 @@ PPO_ALL = "NaN or infinite weights in the policy's mean, the policy's log-std an
 DIVERGING = [("sac_continuous", "step", SAC_ALL, None), ("jirl_sac_continuous", "step", SAC_ALL, None),
              *[(script, head, "NaN or infinite values in the actor", 101) for script in ("sac_continuous", "jirl_sac_continuous") for head in ("mean head", "log-std head")],
              ("jirl_sac_continuous", "overflow", "the actor overflowed", 101), ("sac_continuous", "overflow to NaN", "the actor overflowed", 101),
-             ("ppo_il", "step", PPO_ALL, 128), ("ppo_il", "reward", PPO_ALL, 512), ("trpo_il", "reward", "NaN or infinite weights in the critic", 512)]  # fmt: skip
+             ("ppo_il", "step", PPO_ALL, 128), ("ppo_il", "reward", PPO_ALL, 512), ("trpo_il", "reward", "NaN or infinite weights in the critic", 512),
+             *[(script, "overflow", "the policy's mean overflowed", 129) for script in ("ppo_il", "trpo_il")]]  # fmt: skip
 
 
 def poison(tensor: torch.Tensor, value: float) -> None:
@@ -101,12 +102,50 @@ def poison_the_actor_at_its_second_step(monkeypatch, how: str) -> None:
     monkeypatch.setattr(torch.optim.Adam, "step", step)
 
 
+def overflow_the_policy_at_its_first_update(monkeypatch, script: str) -> None:
+    """PPO's or TRPO's policy left by its first update with finite weights and an infinite mean: the units
+    of its second layer all at tanh(2), and its mean head's weights at 3e38, whose 16 products of 2.9e38
+    sum beyond float32. PPO: after its optimizer's second step (two minibatches, one epoch: the whole
+    update). TRPO: after each parameter write of its line search, which then rejects every trial step and
+    writes the start back, poisoned too."""
+
+    def poison(mean: list) -> None:  # actor_mean's parameters: 0.weight, 0.bias, 2.weight, 2.bias, 4.weight, 4.bias
+        with torch.no_grad():
+            mean[2].zero_()
+            mean[3].fill_(2.0)
+            mean[4].fill_(3e38)
+
+    if script == "ppo_il":
+        real_step, calls = torch.optim.Adam.step, []
+
+        def step(self, *args, **kwargs):
+            loss = real_step(self, *args, **kwargs)
+            params = self.param_groups[0]["params"]
+            if len(params) == 13:  # the RL phase's optimizer: the log-std (the agent's own parameter comes first), the critic's 6 tensors, the mean's 6
+                calls.append(self)
+                if len(calls) == 2:
+                    poison(params[7:])
+            return loss
+
+        monkeypatch.setattr(torch.optim.Adam, "step", step)
+    else:
+        real_write = torch.nn.utils.vector_to_parameters
+
+        def write(vector, params):  # policy_params: the mean's 6 tensors, then the log-std
+            real_write(vector, params)
+            poison(params[:6])
+
+        monkeypatch.setattr(torch.nn.utils, "vector_to_parameters", write)
+
+
 @pytest.mark.parametrize("script, cause, reason, step", DIVERGING)
 def test_a_diverging_training_ends_naming_what_diverged_before_its_nan_acts(script, cause, reason, step, tmp_path, monkeypatch, capsys, recorded):
     monkeypatch.chdir(tmp_path)
     if cause == "reward":
         monkeypatch.setattr(RecordingPendulum, "scale", 1e37)
-    if cause.endswith("head") or cause.startswith("overflow"):
+    if cause == "overflow" and script.endswith("_il"):
+        overflow_the_policy_at_its_first_update(monkeypatch, script)
+    elif cause.endswith("head") or cause.startswith("overflow"):
         poison_the_actor_at_its_second_step(monkeypatch, cause)
     args = [*without(SHORT_RUNS[script], "--total-timesteps"), "--total-timesteps", "1000", "--env-id", f"{__name__}:RecordingPendulum-v0",
             "--baseline", "test_stopping:zero_torque", "--regret-estimator", "off", "--save-model", *(TOO_LARGE_A_STEP[script] if cause == "step" else [])]  # fmt: skip
@@ -126,7 +165,8 @@ def test_a_diverging_training_ends_naming_what_diverged_before_its_nan_acts(scri
         assert 100 < at < 1000
     assert "Traceback" not in err and "returned a non-finite" not in err and "eval:" not in out
     training_env = recorded[0]  # made first; PPO's and TRPO's imitation and their cloned policy's evaluation have envs of their own
-    assert len(training_env.actions) == at  # no action of the step it stopped at was applied
+    applied = at - 1 if script.endswith("_il") and cause == "overflow" else at  # PPO and TRPO count steps from 1: step 129 is the one not taken
+    assert len(training_env.actions) == applied  # no action of the step it stopped at was applied
     assert all(np.isfinite(a).all() for env in recorded for a in env.actions)  # no NaN ever reached an env
     (run_dir,) = (tmp_path / "runs").iterdir()
     logged = scalars(run_dir)
@@ -137,10 +177,11 @@ def test_a_diverging_training_ends_naming_what_diverged_before_its_nan_acts(scri
         logged_at = [e.step for e in events.Scalars("charts/SPS")] if "charts/SPS" in events.Tags()["scalars"] else []
         assert logged_at == list(range(128, at, 128))
     model = run_dir / f"{script}.cleanrl_model"  # saved as it is: refused by name when loaded, if a weight is NaN
-    if cause == "overflow":  # finite weights: it loads, and its deterministic action saturates
+    if cause == "overflow" and not script.endswith("_il"):  # finite weights: it loads, and its deterministic action tanh(mean) saturates
         assert np.isfinite(load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)).all()
-    elif cause == "overflow to NaN":  # it loads, and its evaluation refuses the NaN action before the env is blamed for it
-        with pytest.raises(ValueError, match=r"^the policy's action at step 0 of evaluation episode 0 is \[nan\], not finite: its network overflows float32 there$"):
+    elif cause.startswith("overflow"):  # it loads, and its evaluation refuses the action before the env is blamed for it
+        action = r"\[nan\]" if cause == "overflow to NaN" else r"\[inf\]"
+        with pytest.raises(ValueError, match=rf"^the policy's action at step 0 of evaluation episode 0 is {action}, not finite: its network overflows float32 there$"):
             load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)
     else:
         with pytest.raises(ValueError, match=r"damaged .* checkpoint: its (actor|agent) holds a NaN or infinite weight$"):
