@@ -13,7 +13,8 @@
   actor returns, JIRL's of the policy's mean and log-std before it samples, each against the same query
   without it, on a 64-unit actor (at 1/20 of `--calls`: a query costs about 100 µs). And PPO+IL's and
   TRPO+IL's rollout call, whose `Normal` no longer validates its parameters (a NaN is found after the
-  update instead), against the same call with torch's validation.
+  update instead), against the same call with torch's validation, and their check of the action it
+  samples (a mean that overflows with finite weights) against the same call without it.
 - The car's check at each pause of the actor's output on the 256 latest stored observations
   (`deploy.jetracer.overflow`), and, for scale, one of the pause's 200 gradient steps, each against
   nothing, at the car's defaults (64 units, a batch of 64; at 1/1000 of `--calls`). The car's check at
@@ -132,6 +133,13 @@ def main() -> None:
         with torch.no_grad():
             return call(x)
 
+    def ppo_action(check: bool) -> torch.Tensor:
+        with torch.no_grad():
+            action, _, _, _ = agent.get_action_and_value(x)
+        if check and not math.isfinite(sum(action[0].tolist())):
+            raise ArithmeticError("diverged")
+        return action
+
     from deploy import jetracer
 
     car_hp = jetracer.car_jirl_defaults()
@@ -151,6 +159,7 @@ def main() -> None:
         ("SAC's check of its action vs none", lambda: sac_action(True), lambda: sac_action(False), max(1, args.calls // 20)),
         ("JIRL's check of its policy vs none", lambda: jirl_action(True), lambda: jirl_action(False), max(1, args.calls // 20)),
         ("PPO's rollout call, unvalidated vs validated", lambda: rollout_call(agent.get_action_and_value), lambda: rollout_call(validated), max(1, args.calls // 20)),
+        ("PPO's check of its rollout action vs none", lambda: ppo_action(True), lambda: ppo_action(False), max(1, args.calls // 20)),
         ("the car's pause check on 256 stored observations vs nothing", lambda: jetracer.overflow(car.actor, car_rb), lambda: None, max(1, args.calls // 1000)),
         ("a gradient step of the car's pause vs nothing", lambda: car.update(car_rb.sample(car_hp.batch_size), next(updates)), lambda: None, max(1, args.calls // 1000)),
     ]
