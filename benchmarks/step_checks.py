@@ -136,7 +136,7 @@ def main() -> None:
     def ppo_action(check: bool) -> torch.Tensor:
         with torch.no_grad():
             action, _, _, _ = agent.get_action_and_value(x)
-        if check and not math.isfinite(sum(action[0].tolist())):
+        if check and not math.isfinite(sum(action.tolist()[0])):
             raise ArithmeticError("diverged")
         return action
 
