@@ -1000,7 +1000,7 @@ if __name__ == "__main__":
             with torch.no_grad():
                 action, logprob, _, value = agent.get_action_and_value(next_obs.unsqueeze(0))
                 values[step] = value.flatten()
-            if not math.isfinite(sum(action.tolist()[0])):  # finite weights whose mean overflows float32: end before the env gets it (action[0] costs 7 µs more)
+            if not math.isfinite(sum(action.tolist()[0])):  # finite weights whose mean overflows float32: end before the env gets it (action[0].tolist() costs 5 µs more)
                 stop.end(f"{args.exp_name}: error: the training diverged: the policy's mean overflowed", 1)
                 break
             actions[step] = action[0]
