@@ -1,6 +1,6 @@
 """Shared test helpers: load an algorithm script as a module without running its main block; a full disk;
-the TensorBoard writers of a run ended in-process, closed; an actor whose finite weights give NaN; and a
-check that no test leaves a signal handler changed."""
+the TensorBoard writers of a run ended in-process, closed; policies whose finite weights give a NaN or
+an infinite action; and a check that no test leaves a signal handler changed."""
 
 import builtins
 import errno
@@ -87,6 +87,16 @@ def overflow_the_actor(weights: dict, head: str = "fc_mean") -> None:
         w = weights[f"{head}.weight"]
         w.copy_(torch.tensor([3e38, -3e38]).repeat(w.numel() // 2).view_as(w))
     assert all(bool(torch.isfinite(w).all()) for w in weights.values())
+
+
+def overflow_the_policy_mean(mean: list) -> None:
+    """PPO's and TRPO's `actor_mean` parameters (0.weight, 0.bias, 2.weight, 2.bias, 4.weight, 4.bias),
+    made finite weights whose mean is +inf: every unit of the second layer at tanh(2) = 0.96, and the last
+    layer's weights at 3e38, so that its products of 2.9e38 sum beyond float32."""
+    with torch.no_grad():
+        mean[2].zero_()
+        mean[3].fill_(2.0)
+        mean[4].fill_(3e38)
 
 
 def fill_the_disk_for(monkeypatch, name: str) -> None:

@@ -16,7 +16,7 @@ import torch
 from gymnasium.envs.classic_control.pendulum import PendulumEnv
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from conftest import ROOT, load_script, overflow_the_actor
+from conftest import ROOT, load_script, overflow_the_actor, overflow_the_policy_mean
 from test_sac_script import SHORT_RUNS, scalars
 from test_stopping import without
 
@@ -103,18 +103,10 @@ def poison_the_actor_at_its_second_step(monkeypatch, how: str) -> None:
 
 
 def overflow_the_policy_at_its_first_update(monkeypatch, script: str) -> None:
-    """PPO's or TRPO's policy left by its first update with finite weights and an infinite mean: the units
-    of its second layer all at tanh(2), and its mean head's weights at 3e38, whose 16 products of 2.9e38
-    sum beyond float32. PPO: after its optimizer's second step (two minibatches, one epoch: the whole
-    update). TRPO: after each parameter write of its line search, which then rejects every trial step and
-    writes the start back, poisoned too."""
-
-    def poison(mean: list) -> None:  # actor_mean's parameters: 0.weight, 0.bias, 2.weight, 2.bias, 4.weight, 4.bias
-        with torch.no_grad():
-            mean[2].zero_()
-            mean[3].fill_(2.0)
-            mean[4].fill_(3e38)
-
+    """PPO's or TRPO's policy left by its first update with finite weights and an infinite mean
+    (`overflow_the_policy_mean`). PPO: after its optimizer's second step (two minibatches, one epoch: the
+    whole update). TRPO: after each parameter write of its line search, which then rejects every trial
+    step and writes the start back, poisoned too."""
     if script == "ppo_il":
         real_step, calls = torch.optim.Adam.step, []
 
@@ -124,7 +116,7 @@ def overflow_the_policy_at_its_first_update(monkeypatch, script: str) -> None:
             if len(params) == 13:  # the RL phase's optimizer: the log-std (the agent's own parameter comes first), the critic's 6 tensors, the mean's 6
                 calls.append(self)
                 if len(calls) == 2:
-                    poison(params[7:])
+                    overflow_the_policy_mean(params[7:])
             return loss
 
         monkeypatch.setattr(torch.optim.Adam, "step", step)
@@ -133,7 +125,7 @@ def overflow_the_policy_at_its_first_update(monkeypatch, script: str) -> None:
 
         def write(vector, params):  # policy_params: the mean's 6 tensors, then the log-std
             real_write(vector, params)
-            poison(params[:6])
+            overflow_the_policy_mean(params[:6])
 
         monkeypatch.setattr(torch.nn.utils, "vector_to_parameters", write)
 

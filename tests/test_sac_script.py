@@ -17,7 +17,7 @@ import torch
 from gymnasium.envs.classic_control.pendulum import PendulumEnv
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from conftest import ROOT, fill_the_disk_for, load_script, overflow_the_actor, small_checkpoint
+from conftest import ROOT, fill_the_disk_for, load_script, overflow_the_actor, overflow_the_policy_mean, small_checkpoint
 
 TINY = ["--hidden-size", "32", "--batch-size", "32", "--log-every", "50"]
 
@@ -197,11 +197,8 @@ def test_a_checkpoint_holding_a_value_no_sound_checkpoint_holds_is_damaged_in_on
     overflowing = {name: w.clone() for name, w in saved[weights].items()}  # finite weights whose action is not: sound, and refused as it acts
     if weights == "actor":
         overflow_the_actor(overflowing)
-    else:  # the tanh units at 0.96: 8 products of 2.9e38 sum beyond float32
-        with torch.no_grad():
-            overflowing["actor_mean.2.weight"].zero_()
-            overflowing["actor_mean.2.bias"].fill_(2.0)
-            overflowing["actor_mean.4.weight"].fill_(3e38)
+    else:
+        overflow_the_policy_mean([overflowing[f"actor_mean.{layer}.{kind}"] for layer in (0, 2, 4) for kind in ("weight", "bias")])
     torch.save({**saved, weights: overflowing}, tmp_path / "overflowing.cleanrl_model")
     with pytest.raises(ValueError) as raised:  # before, the NaN reached Pendulum, and the env was blamed for it
         script.evaluate(str(tmp_path / "overflowing.cleanrl_model"), "Pendulum-v1", 1, 0)
