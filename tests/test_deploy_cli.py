@@ -1002,7 +1002,7 @@ def test_a_training_that_diverges_stops_the_car_at_the_next_pause_and_keeps_its_
 
 
 def record_the_cars_actions(monkeypatch) -> list:
-    """The step count of every action the car was sent, and every replay row stored, checked finite."""
+    """Every action given to the car session, in order; every replay row stored is checked finite as it is added."""
     acted, real_act, real_add = [], jetracer.CarSession.act, jetracer.jirl.ReplayBuffer.add
 
     def add(self, obs, action, reward, next_obs, *args, **kwargs):
