@@ -17,8 +17,8 @@
   samples (a mean that overflows with finite weights) against the same call without it.
 - The car's check at each pause of the actor's output on the 256 latest stored observations
   (`deploy.jetracer.overflow`), and, for scale, one of the pause's 200 gradient steps, each against
-  nothing, at the car's defaults (64 units, a batch of 64; at 1/1000 of `--calls`). The car's check at
-  every step is JIRL's, above.
+  nothing, at the car's defaults (64 units, a batch of 64; at 1/1000 of `--calls`), and the car's check
+  at every step, JIRL's on the car's actor (142 inputs), against the same query without it.
 
 The wrappers come from `jirl_sac_continuous.py` (the four scripts share these definitions, a test checks).
 Each repeat times both sides back to back (which first alternates), the best of 3 runs of `--calls` calls each; prints the
@@ -149,6 +149,14 @@ def main() -> None:
     for _ in range(1_000):  # lane masks in [0, 1] and previous actions in [-1, 1], as the car stores them
         car_rb.add(rng.random(jetracer.OBS_SIZE, dtype=np.float32), rng.uniform(-1, 1, 2), 1.0, rng.random(jetracer.OBS_SIZE, dtype=np.float32), False)
     updates = iter(range(10**9))
+    car_obs = torch.from_numpy(car_rb.obs[:1].copy())
+
+    def car_action(check: bool) -> np.ndarray:  # the car loop's query of its actor, as train_holding writes it
+        with torch.inference_mode():
+            mean, log_std = car.actor(car_obs)
+            if check and not math.isfinite(sum(mean[0].tolist() + log_std[0].tolist())):
+                raise ArithmeticError("diverged")
+            return torch.tanh(torch.normal(mean, log_std.exp()))[0].numpy()
 
     rows = [
         *[(f"CheckedEnv.step vs the bare step, {name}", new, old, args.calls) for name, (new, old) in sides.items()],
@@ -160,6 +168,7 @@ def main() -> None:
         ("JIRL's check of its policy vs none", lambda: jirl_action(True), lambda: jirl_action(False), max(1, args.calls // 20)),
         ("PPO's rollout call, unvalidated vs validated", lambda: rollout_call(agent.get_action_and_value), lambda: rollout_call(validated), max(1, args.calls // 20)),
         ("PPO's check of its rollout action vs none", lambda: ppo_action(True), lambda: ppo_action(False), max(1, args.calls // 20)),
+        ("the car's check of its policy vs none", lambda: car_action(True), lambda: car_action(False), max(1, args.calls // 20)),
         ("the car's pause check on 256 stored observations vs nothing", lambda: jetracer.overflow(car.actor, car_rb), lambda: None, max(1, args.calls // 1000)),
         ("a gradient step of the car's pause vs nothing", lambda: car.update(car_rb.sample(car_hp.batch_size), next(updates)), lambda: None, max(1, args.calls // 1000)),
     ]
