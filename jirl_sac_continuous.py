@@ -7,6 +7,7 @@ import importlib
 import math
 import os
 import random
+import re
 import reprlib
 import signal
 import sys
@@ -50,6 +51,12 @@ class Args:
     """seed of the experiment; training episode e starts from env.reset(seed=seed + e)"""
     torch_threads: int = 1
     """torch CPU threads (2 threads collapse when another process shares a 2-core machine)"""
+    track: bool = False
+    """whether to mirror the run to Weights and Biases: its TensorBoard logs, Args, this script and the videos (needs wandb; WANDB_MODE=offline keeps it on disk)"""
+    wandb_project_name: str = "jirl"
+    """the Weights and Biases project of --track"""
+    wandb_entity: Optional[str] = None
+    """the Weights and Biases team of --track (default: your own account)"""
     capture_video: bool = False
     """whether to record videos of the agent to `videos/{run_name}` (needs moviepy)"""
     save_model: bool = False
@@ -901,6 +908,37 @@ def claim_run_dir(run_name: str) -> str:
             pass
 
 
+def start_tracking(args: Args, run_name: str):
+    """The Weights and Biases run of --track, which mirrors the TensorBoard logs of runs/{run_name} (the
+    writer is made after it) and keeps Args and this script; ValueError when it cannot start (no wandb,
+    no login, no server), before anything is trained. Not monitor_gym: its hook fails at gymnasium 1.x's
+    RecordVideo.close (wandb issue 9947), so track_videos sends the videos at the end instead."""
+    try:
+        import wandb
+    except ImportError:
+        raise ValueError("--track needs Weights and Biases (pip install wandb)") from None
+    wandb.tensorboard.patch(root_logdir=f"runs/{run_name}")  # sync_tensorboard=True, but with the folder named: unnamed, wandb waits 10 s at exit to find it
+    try:
+        return wandb.init(project=args.wandb_project_name, entity=args.wandb_entity, name=run_name, config=vars(args), save_code=True)
+    except wandb.errors.Error as err:  # its message runs over several lines: keep it on one
+        raise ValueError(f"--track: Weights and Biases did not start: {' '.join(str(err).split())}") from None
+
+
+def track_videos(run, run_name: str) -> None:
+    """Send the videos of --capture-video to the --track run, in episode order (RecordVideo names them
+    rl-video-episode-{e}.mp4, and writes the last one when the env closes)."""
+    import wandb
+
+    folder = f"videos/{run_name}"
+    episodes = []
+    for name in os.listdir(folder) if os.path.isdir(folder) else []:
+        match = re.fullmatch(r"rl-video-episode-(\d+)\.mp4", name)
+        if match:
+            episodes.append(int(match[1]))
+    for episode in sorted(episodes):
+        run.log({"videos": wandb.Video(f"{folder}/rl-video-episode-{episode}.mp4")})
+
+
 class CheckedWriter(SummaryWriter):
     """TensorBoard's SummaryWriter, except that a write that fails (a full disk, a file-size limit) is not
     raised from whichever call comes next, mid-loop, after a traceback from TensorBoard's writing thread:
@@ -1009,6 +1047,7 @@ if __name__ == "__main__":
             args.guidance_steps = args.total_timesteps // 2
         # no more rows than the run stores: per step a real, a fabricated and a switch-penalty transition
         rb = ReplayBuffer(min(args.buffer_size, 3 * args.total_timesteps), env.observation_space.shape[0], env.action_space.shape[0], args.seed)
+        wandb_run = start_tracking(args, run_name) if args.track else None  # last: bad input starts no W&B run; before the writer it mirrors
     except BaseException as err:  # bad input, or a crash in a user's env: either way the claimed directory goes, and runs/ if now empty
         os.removedirs(f"runs/{run_name}")
         if isinstance(err, ValueError):
@@ -1233,7 +1272,9 @@ if __name__ == "__main__":
             writer.add_scalar("eval/episodic_return", episodic_return, idx)
         print(f"eval: mean return {np.mean(episodic_returns):.1f} over {len(episodic_returns)} episodes")
 
-    env.close()
+    env.close()  # RecordVideo writes the last video here
+    if wandb_run is not None and args.capture_video:
+        track_videos(wandb_run, run_name)
     if shadow_env is not None:
         shadow_env.close()
     writer.close()

@@ -1,0 +1,145 @@
+"""--track: every script mirrors its run to Weights and Biases (offline here: WANDB_MODE=offline writes the
+run to ./wandb and reaches no server). The run file is read back record by record and compared with the
+TensorBoard logs it mirrors, the Args the script resolved, the script itself, and the recorded videos."""
+
+import json
+import os
+import shutil
+import struct
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+from wandb.proto import wandb_internal_pb2
+
+from conftest import ROOT
+
+SHORT_RUNS = {
+    "sac_continuous": ["--total-timesteps", "300", "--learning-starts", "100", "--hidden-size", "32", "--batch-size", "32",
+                       "--log-every", "50", "--baseline-eval-episodes", "1"],  # fmt: skip
+    "jirl_sac_continuous": ["--total-timesteps", "300", "--learning-starts", "100", "--hidden-size", "32", "--batch-size", "32",
+                            "--log-every", "50", "--baseline-eval-episodes", "1"],  # fmt: skip
+    "ppo_il": ["--total-timesteps", "256", "--num-steps", "128", "--num-minibatches", "2", "--update-epochs", "1", "--il-steps", "400",
+               "--il-max-epochs", "2", "--hidden-size", "16"],  # fmt: skip
+    "trpo_il": ["--total-timesteps", "256", "--num-steps", "128", "--n-critic-updates", "1", "--il-steps", "400", "--il-max-epochs", "2",
+                "--hidden-size", "16"],  # fmt: skip
+}
+BLOCK, HEADER = 32768, 7  # the run file's log format: 32 KiB blocks of records, each after a 7-byte header
+FULL, LAST = 1, 4  # a record whole in one piece, and the last piece of one split across blocks
+
+
+def run_tracked(script: str, args: list[str], cwd: Path, **env: str) -> subprocess.CompletedProcess:
+    """The script, copied into cwd (W&B saves the code of a program under its working directory), run with
+    this repository's envs/ importable and a home of its own (no login, no cache outside cwd)."""
+    shutil.copy(ROOT / f"{script}.py", cwd)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("WANDB_")} | {"PYTHONPATH": str(ROOT), "HOME": str(cwd)} | env
+    return subprocess.run([sys.executable, f"{script}.py", *args], cwd=cwd, capture_output=True, text=True, env=env, timeout=300)
+
+
+def wandb_records(path: Path) -> list:
+    """The protobuf records of a W&B run file (its .wandb file), in the order they were written."""
+    data = path.read_bytes()
+    assert data[:7] == b":W&B" + struct.pack("<HB", 0xBEE1, 0), data[:7]  # the format's name, magic number and version 0
+    records, pieces, pos = [], [], 7
+    while pos + HEADER <= len(data):
+        if BLOCK - pos % BLOCK < HEADER:  # a block's tail too short for a header is padding
+            pos += BLOCK - pos % BLOCK
+            continue
+        _, length, kind = struct.unpack_from("<IHB", data, pos)  # checksum, length, piece kind
+        pieces.append(data[pos + HEADER : pos + HEADER + length])
+        pos += HEADER + length
+        if kind in (FULL, LAST):
+            record = wandb_internal_pb2.Record()
+            record.ParseFromString(b"".join(pieces))
+            records.append(record)
+            pieces = []
+    return records
+
+
+def offline_run(cwd: Path) -> tuple[Path, list]:
+    (run_dir,) = (cwd / "wandb").glob("offline-run-*")
+    (run_file,) = run_dir.glob("run-*.wandb")
+    return run_dir, wandb_records(run_file)
+
+
+def history(records: list) -> dict[str, list[tuple[int, float]]]:
+    """Each synced tag's (TensorBoard step, value) pairs; W&B stores the step as global_step beside them."""
+    found: dict = {}
+    for record in records:
+        if record.WhichOneof("record_type") == "history":
+            items = {item.key or "/".join(item.nested_key): json.loads(item.value_json) for item in record.history.item}
+            for key, value in items.items():
+                if key != "global_step" and not key.startswith("_"):
+                    found.setdefault(key, []).append((items["global_step"], value))
+    return found
+
+
+@pytest.mark.parametrize("script", SHORT_RUNS)
+def test_track_mirrors_the_tensorboard_logs_the_args_and_the_script(script, tmp_path):
+    out = run_tracked(script, [*SHORT_RUNS[script], "--track"], tmp_path, WANDB_MODE="offline")
+    assert out.returncode == 0, out.stderr
+    (run_name,) = [p.name for p in (tmp_path / "runs").iterdir()]
+    run_dir, records = offline_run(tmp_path)
+    (run,) = [r.run for r in records if r.WhichOneof("record_type") == "run"]
+    assert (run.display_name, run.project) == (run_name, "jirl")
+    config = {item.key: json.loads(item.value_json) for item in run.config.update}
+    assert config["seed"] == 1 and config["total_timesteps"] == int(SHORT_RUNS[script][1]) and config["track"] is True
+    if script == "jirl_sac_continuous":
+        assert config["guidance_steps"] == 150  # as the script resolved it (half the run), not the None given
+    assert (run_dir / "files" / "code" / f"{script}.py").read_text() == (ROOT / f"{script}.py").read_text()
+    (exit_record,) = [r.exit for r in records if r.WhichOneof("record_type") == "exit"]
+    assert exit_record.exit_code == 0
+
+    events = EventAccumulator(str(tmp_path / "runs" / run_name), size_guidance={"scalars": 0})
+    events.Reload()
+    logged = {tag: sorted((e.step, e.value) for e in events.Scalars(tag)) for tag in events.Tags()["scalars"]}
+    mirrored = {tag: sorted(pairs) for tag, pairs in history(records).items()}
+    assert {"charts/episodic_return", "charts/SPS", "charts/baseline_regret"} <= set(logged)
+    assert any(tag.startswith("losses/") for tag in logged)
+    assert set(mirrored) == set(logged)
+    for tag, pairs in logged.items():
+        assert [step for step, _ in mirrored[tag]] == [step for step, _ in pairs], tag
+        np.testing.assert_array_equal(np.float32([v for _, v in mirrored[tag]]), np.float32([v for _, v in pairs]), err_msg=tag)
+
+
+def test_track_sends_the_recorded_videos_in_episode_order(tmp_path):
+    args = ["--total-timesteps", "400", "--learning-starts", "200", "--hidden-size", "16", "--batch-size", "16", "--baseline-eval-episodes", "1"]
+    out = run_tracked("sac_continuous", [*args, "--track", "--capture-video"], tmp_path, WANDB_MODE="offline")
+    assert out.returncode == 0, out.stderr
+    (videos,) = (tmp_path / "videos").iterdir()
+    recorded = sorted(videos.glob("*.mp4"))
+    assert [p.name for p in recorded] == ["rl-video-episode-0.mp4", "rl-video-episode-1.mp4"]  # RecordVideo's cubic schedule
+    run_dir, records = offline_run(tmp_path)
+    sent = [json.loads(item.value_json) for r in records if r.WhichOneof("record_type") == "history" for item in r.history.item if list(item.nested_key) == ["videos", "path"]]
+    assert len(sent) == 2
+    for path, original in zip(sent, recorded):  # the episode-1 video, written when the env closed, is sent too
+        assert (run_dir / "files" / path).read_bytes() == original.read_bytes()
+
+
+@pytest.mark.parametrize("script", SHORT_RUNS)
+def test_track_without_wandb_installed_is_a_one_line_error_that_leaves_nothing(script, tmp_path):
+    hidden = tmp_path / "hidden"
+    hidden.mkdir()
+    (hidden / "wandb.py").write_text("raise ImportError(\"No module named 'wandb'\")\n")  # as where it is not installed
+    out = run_tracked(script, [*SHORT_RUNS[script], "--track"], tmp_path, PYTHONPATH=f"{hidden}{os.pathsep}{ROOT}")
+    assert out.returncode == 1 and "Traceback" not in out.stderr, out.stderr
+    assert out.stderr.strip().splitlines()[-1] == f"{script}: error: --track needs Weights and Biases (pip install wandb)"
+    assert not (tmp_path / "runs").exists() and not (tmp_path / "wandb").exists()
+
+
+def test_track_without_a_login_is_a_one_line_error_before_anything_is_trained(tmp_path):
+    out = run_tracked("jirl_sac_continuous", [*SHORT_RUNS["jirl_sac_continuous"], "--track"], tmp_path)  # online, with no API key
+    assert out.returncode == 1 and "Traceback" not in out.stderr, out.stderr
+    last = out.stderr.strip().splitlines()[-1]
+    assert last.startswith("jirl_sac_continuous: error: --track: Weights and Biases did not start: ") and "API key" in last, last
+    assert "global_step=" not in out.stdout and "baseline:" not in out.stdout
+    assert not (tmp_path / "runs").exists()
+
+
+def test_bad_input_with_track_starts_no_wandb_run(tmp_path):
+    out = run_tracked("sac_continuous", ["--env-id", "NoSuchEnv-v0", "--track"], tmp_path, WANDB_MODE="offline")
+    assert out.returncode == 1 and out.stderr.strip().splitlines()[-1].startswith("sac_continuous: error: unknown env id 'NoSuchEnv-v0'"), out.stderr
+    assert not (tmp_path / "wandb").exists() and not (tmp_path / "runs").exists()
