@@ -711,7 +711,7 @@ def start_tracking(args: Args, run_name: str):
 
 def track_videos(run, run_name: str) -> None:
     """Send the videos of --capture-video to the --track run, in episode order (RecordVideo names them
-    rl-video-episode-{e}.mp4, and writes the last one when the env closes)."""
+    rl-video-episode-{e}.mp4, and writes that of an episode still running when the env closes)."""
     import wandb
 
     folder = f"videos/{run_name}"
@@ -985,7 +985,7 @@ if __name__ == "__main__":
             writer.add_scalar("eval/episodic_return", episodic_return, idx)
         print(f"eval: mean return {np.mean(episodic_returns):.1f} over {len(episodic_returns)} episodes")
 
-    env.close()  # RecordVideo writes the last video here
+    env.close()  # RecordVideo writes the video of an unfinished episode here
     if wandb_run is not None and args.capture_video:
         track_videos(wandb_run, run_name)
     if shadow_env is not None:

@@ -105,9 +105,9 @@ def test_track_mirrors_the_tensorboard_logs_the_args_and_the_script(script, tmp_
         np.testing.assert_array_equal(np.float32([v for _, v in mirrored[tag]]), np.float32([v for _, v in pairs]), err_msg=tag)
 
 
-def test_track_sends_the_recorded_videos_in_episode_order(tmp_path):
-    args = ["--total-timesteps", "400", "--learning-starts", "200", "--hidden-size", "16", "--batch-size", "16", "--baseline-eval-episodes", "1"]
-    out = run_tracked("sac_continuous", [*args, "--track", "--capture-video"], tmp_path, WANDB_MODE="offline")
+@pytest.mark.parametrize("script", SHORT_RUNS)
+def test_track_sends_the_recorded_videos_in_episode_order(script, tmp_path):
+    out = run_tracked(script, [*SHORT_RUNS[script], "--track", "--capture-video"], tmp_path, WANDB_MODE="offline")
     assert out.returncode == 0, out.stderr
     (videos,) = (tmp_path / "videos").iterdir()
     recorded = sorted(videos.glob("*.mp4"))
@@ -115,7 +115,7 @@ def test_track_sends_the_recorded_videos_in_episode_order(tmp_path):
     run_dir, records = offline_run(tmp_path)
     sent = [json.loads(item.value_json) for r in records if r.WhichOneof("record_type") == "history" for item in r.history.item if list(item.nested_key) == ["videos", "path"]]
     assert len(sent) == 2
-    for path, original in zip(sent, recorded):  # the episode-1 video, written when the env closed, is sent too
+    for path, original in zip(sent, recorded):  # episode 1's, cut short by the run's end and written as the env closed, too
         assert (run_dir / "files" / path).read_bytes() == original.read_bytes()
 
 
