@@ -8,8 +8,9 @@ folder holding its own copy of the script:
   the named folder, which leaves wandb looking for the folder at exit.
 
 The forms run in turn within each repeat (their order rotating), so that a busy machine slows all
-three alike; prints the median and range over the repeats of each form's seconds and of its ratio to
-`plain` in the same repeat.
+three alike; prints the median and range over the repeats of each form's seconds, and of its ratio to
+`plain` and the seconds it adds to it in the same repeat (W&B's start and exit: the same for any length
+of run, so the ratio is this short run's).
 
     python benchmarks/tracking_cost.py --repeats 5
 """
@@ -70,8 +71,10 @@ def main() -> None:
         print(f"repeat {i + 1}: " + ", ".join(f"{form} {seconds[form][-1]:.1f} s" for form in forms), flush=True)
     for form in forms:
         ratios = [s / p for s, p in zip(seconds[form], seconds["plain"])]
+        added = [s - p for s, p in zip(seconds[form], seconds["plain"])]
         print(f"{form:>16}: {statistics.median(seconds[form]):5.1f} s ({min(seconds[form]):.1f} to {max(seconds[form]):.1f}),"
-              f" {statistics.median(ratios):.2f}x plain ({min(ratios):.2f} to {max(ratios):.2f})")  # fmt: skip
+              f" {statistics.median(ratios):.2f}x plain ({min(ratios):.2f} to {max(ratios):.2f}),"
+              f" +{statistics.median(added):.1f} s ({min(added):.1f} to {max(added):.1f})")  # fmt: skip
 
 
 if __name__ == "__main__":
