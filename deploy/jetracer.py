@@ -132,6 +132,7 @@ CAR_IGNORES = {
     "regret_estimator": "the car's regret uses --baseline-reward-per-step", "baseline_eval_episodes": "measure it with `baseline`",
     "save_model": "the state is saved to --checkpoint", "eval_episodes": "drive the agent with `run`",
     "capture_video": "not on the car", "guidance_fade_steps": "not on the car", "intervention_mode": "the gamepad's takeover intervenes",
+    "track": "the car logs to TensorBoard under --log-dir", "wandb_project_name": "no --track on the car", "wandb_entity": "no --track on the car",
 }  # fmt: skip
 
 

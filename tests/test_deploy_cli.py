@@ -1211,6 +1211,8 @@ def test_train_refuses_the_episode_based_schedule(tmp_path):
         (["--jirl.total-timesteps", "500", "--jirl.guidance-fade-steps", "100"],
          "--jirl.total-timesteps (use --total-steps); --jirl.guidance-fade-steps (not on the car)"),
         (["--jirl.intervention-mode"], "--jirl.intervention-mode (the gamepad's takeover intervenes)"),
+        (["--jirl.track", "--jirl.wandb-project-name", "car"],
+         "--jirl.track (the car logs to TensorBoard under --log-dir); --jirl.wandb-project-name (no --track on the car)"),
     ],
 )  # fmt: skip
 def test_train_refuses_jirl_options_that_the_car_does_not_use(tmp_path, options, message):
