@@ -89,6 +89,8 @@ def test_track_mirrors_the_tensorboard_logs_the_args_and_the_script(script, tmp_
     assert config["seed"] == 1 and config["total_timesteps"] == int(SHORT_RUNS[script][1]) and config["track"] is True
     if script == "jirl_sac_continuous":
         assert config["guidance_steps"] == 150  # as the script resolved it (half the run), not the None given
+    if script in ("ppo_il", "trpo_il"):
+        assert config["learning_rate"] == 1e-3  # RL Zoo's for Pendulum-v1, resolved from the None given
     assert (run_dir / "files" / "code" / f"{script}.py").read_text() == (ROOT / f"{script}.py").read_text()
     (exit_record,) = [r.exit for r in records if r.WhichOneof("record_type") == "exit"]
     assert exit_record.exit_code == 0
