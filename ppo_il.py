@@ -59,7 +59,7 @@ class Args:
     wandb_project_name: str = "jirl"
     """the Weights and Biases project of --track"""
     wandb_entity: Optional[str] = None
-    """the Weights and Biases team of --track (default: your own account)"""
+    """the Weights and Biases entity (a user or a team) of --track (default: your account's default entity)"""
     capture_video: bool = False
     """whether to record videos of the agent to `videos/{run_name}` (needs moviepy)"""
     save_model: bool = False
