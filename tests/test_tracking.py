@@ -16,17 +16,8 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from wandb.proto import wandb_internal_pb2
 
 from conftest import ROOT
+from test_sac_script import SHORT_RUNS
 
-SHORT_RUNS = {
-    "sac_continuous": ["--total-timesteps", "300", "--learning-starts", "100", "--hidden-size", "32", "--batch-size", "32",
-                       "--log-every", "50", "--baseline-eval-episodes", "1"],  # fmt: skip
-    "jirl_sac_continuous": ["--total-timesteps", "300", "--learning-starts", "100", "--hidden-size", "32", "--batch-size", "32",
-                            "--log-every", "50", "--baseline-eval-episodes", "1"],  # fmt: skip
-    "ppo_il": ["--total-timesteps", "256", "--num-steps", "128", "--num-minibatches", "2", "--update-epochs", "1", "--il-steps", "400",
-               "--il-max-epochs", "2", "--hidden-size", "16"],  # fmt: skip
-    "trpo_il": ["--total-timesteps", "256", "--num-steps", "128", "--n-critic-updates", "1", "--il-steps", "400", "--il-max-epochs", "2",
-                "--hidden-size", "16"],  # fmt: skip
-}
 BLOCK, HEADER = 32768, 7  # the run file's log format: 32 KiB blocks of records, each after a 7-byte header
 FULL, LAST = 1, 4  # a record whole in one piece, and the last piece of one split across blocks
 
@@ -79,7 +70,7 @@ def history(records: list) -> dict[str, list[tuple[int, float]]]:
 
 @pytest.mark.parametrize("script", SHORT_RUNS)
 def test_track_mirrors_the_tensorboard_logs_the_args_and_the_script(script, tmp_path):
-    out = run_tracked(script, [*SHORT_RUNS[script], "--track"], tmp_path, WANDB_MODE="offline")
+    out = run_tracked(script, [*SHORT_RUNS[script], "--baseline-eval-episodes", "1", "--track"], tmp_path, WANDB_MODE="offline")
     assert out.returncode == 0, out.stderr
     (run_name,) = [p.name for p in (tmp_path / "runs").iterdir()]
     run_dir, records = offline_run(tmp_path)
@@ -88,7 +79,7 @@ def test_track_mirrors_the_tensorboard_logs_the_args_and_the_script(script, tmp_
     config = {item.key: json.loads(item.value_json) for item in run.config.update}
     assert config["seed"] == 1 and config["total_timesteps"] == int(SHORT_RUNS[script][1]) and config["track"] is True
     if script == "jirl_sac_continuous":
-        assert config["guidance_steps"] == 150  # as the script resolved it (half the run), not the None given
+        assert config["guidance_steps"] == 125  # as the script resolved it (half the run), not the None given
     if script in ("ppo_il", "trpo_il"):
         assert config["learning_rate"] == 1e-3  # RL Zoo's for Pendulum-v1, resolved from the None given
     assert (run_dir / "files" / "code" / f"{script}.py").read_text() == (ROOT / f"{script}.py").read_text()
@@ -109,7 +100,7 @@ def test_track_mirrors_the_tensorboard_logs_the_args_and_the_script(script, tmp_
 
 @pytest.mark.parametrize("script", SHORT_RUNS)
 def test_track_sends_the_recorded_videos_in_episode_order(script, tmp_path):
-    out = run_tracked(script, [*SHORT_RUNS[script], "--track", "--capture-video"], tmp_path, WANDB_MODE="offline")
+    out = run_tracked(script, [*SHORT_RUNS[script], "--baseline-eval-episodes", "1", "--track", "--capture-video"], tmp_path, WANDB_MODE="offline")
     assert out.returncode == 0, out.stderr
     (videos,) = (tmp_path / "videos").iterdir()
     recorded = sorted(videos.glob("*.mp4"))
