@@ -702,9 +702,10 @@ def start_tracking(args: Args, run_name: str):
         import wandb
     except ImportError:
         raise ValueError("--track needs Weights and Biases (pip install wandb)") from None
+    wandb.tensorboard.unpatch()  # from an earlier run in this process (runpy, a notebook), which named its own folder
     wandb.tensorboard.patch(root_logdir=f"runs/{run_name}")  # sync_tensorboard=True, but with the folder named: unnamed, wandb waits 10 s at exit to find it
-    try:
-        return wandb.init(project=args.wandb_project_name, entity=args.wandb_entity, name=run_name, config=vars(args), save_code=True)
+    try:  # an earlier run in this process is finished, where wandb would return it again outside a notebook
+        return wandb.init(project=args.wandb_project_name, entity=args.wandb_entity, name=run_name, config=vars(args), save_code=True, reinit="finish_previous")
     except wandb.errors.Error as err:  # its message runs over several lines: keep it on one
         raise ValueError(f"--track: Weights and Biases did not start: {' '.join(str(err).split())}") from None
 

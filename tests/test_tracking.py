@@ -68,6 +68,20 @@ def history(records: list) -> dict[str, list[tuple[int, float]]]:
     return found
 
 
+def assert_mirrors(records: list, tensorboard_dir: Path) -> None:
+    """The W&B run holds every scalar of the TensorBoard folder, each at its step, and nothing else."""
+    events = EventAccumulator(str(tensorboard_dir), size_guidance={"scalars": 0})
+    events.Reload()
+    logged = {tag: sorted((e.step, e.value) for e in events.Scalars(tag)) for tag in events.Tags()["scalars"]}
+    mirrored = {tag: sorted(pairs) for tag, pairs in history(records).items()}
+    assert {"charts/episodic_return", "charts/SPS", "charts/baseline_regret"} <= set(logged)
+    assert any(tag.startswith("losses/") for tag in logged)
+    assert set(mirrored) == set(logged)
+    for tag, pairs in logged.items():
+        assert [step for step, _ in mirrored[tag]] == [step for step, _ in pairs], tag
+        np.testing.assert_array_equal(np.float32([v for _, v in mirrored[tag]]), np.float32([v for _, v in pairs]), err_msg=tag)
+
+
 @pytest.mark.parametrize("script", SHORT_RUNS)
 def test_track_mirrors_the_tensorboard_logs_the_args_and_the_script(script, tmp_path):
     out = run_tracked(script, [*SHORT_RUNS[script], "--baseline-eval-episodes", "1", "--track"], tmp_path, WANDB_MODE="offline")
@@ -85,17 +99,31 @@ def test_track_mirrors_the_tensorboard_logs_the_args_and_the_script(script, tmp_
     assert (run_dir / "files" / "code" / f"{script}.py").read_text() == (ROOT / f"{script}.py").read_text()
     (exit_record,) = [r.exit for r in records if r.WhichOneof("record_type") == "exit"]
     assert exit_record.exit_code == 0
+    assert_mirrors(records, tmp_path / "runs" / run_name)
 
-    events = EventAccumulator(str(tmp_path / "runs" / run_name), size_guidance={"scalars": 0})
-    events.Reload()
-    logged = {tag: sorted((e.step, e.value) for e in events.Scalars(tag)) for tag in events.Tags()["scalars"]}
-    mirrored = {tag: sorted(pairs) for tag, pairs in history(records).items()}
-    assert {"charts/episodic_return", "charts/SPS", "charts/baseline_regret"} <= set(logged)
-    assert any(tag.startswith("losses/") for tag in logged)
-    assert set(mirrored) == set(logged)
-    for tag, pairs in logged.items():
-        assert [step for step, _ in mirrored[tag]] == [step for step, _ in pairs], tag
-        np.testing.assert_array_equal(np.float32([v for _, v in mirrored[tag]]), np.float32([v for _, v in pairs]), err_msg=tag)
+
+def test_runs_one_after_another_in_one_process_each_get_a_wandb_run_of_their_own(tmp_path):
+    """As a notebook or a seed loop with runpy runs them: the second run patches TensorBoard for its own
+    folder and starts its own W&B run (before: `Tensorboard already patched`, and wandb would have
+    returned the first run again outside a notebook)."""
+    shutil.copy(ROOT / "sac_continuous.py", tmp_path)
+    args = [*SHORT_RUNS["sac_continuous"], "--baseline-eval-episodes", "1", "--track"]
+    loop = f"import runpy, sys\nfor seed in (1, 2):\n    sys.argv = ['sac_continuous.py', *{args!r}, '--seed', str(seed)]\n    runpy.run_path('sac_continuous.py', run_name='__main__')\n"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("WANDB_")} | {"PYTHONPATH": str(ROOT), "HOME": str(tmp_path), "WANDB_MODE": "offline"}
+    out = subprocess.run([sys.executable, "-c", loop], cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr
+    folders = sorted((tmp_path / "runs").iterdir())
+    assert [folder.name.split("__")[2] for folder in folders] == ["1", "2"]  # their seeds
+    runs = {}
+    for run_file in (tmp_path / "wandb").glob("offline-run-*/run-*.wandb"):
+        records = wandb_records(run_file)
+        (run,) = [r.run for r in records if r.WhichOneof("record_type") == "run"]
+        runs[run.display_name] = records
+    assert sorted(runs) == [folder.name for folder in folders]
+    for folder in folders:
+        assert_mirrors(runs[folder.name], folder)
+        (exit_record,) = [r.exit for r in runs[folder.name] if r.WhichOneof("record_type") == "exit"]
+        assert exit_record.exit_code == 0
 
 
 @pytest.mark.parametrize("script", SHORT_RUNS)
