@@ -788,10 +788,12 @@ def start_tracking(args: Args, run_name: str):
         import wandb
     except ImportError:
         raise ValueError("--track needs Weights and Biases (pip install wandb)") from None
-    wandb.tensorboard.unpatch()  # from an earlier run in this process (runpy, a notebook), which named its own folder
+    if wandb.run is not None:  # an earlier run in this process (runpy, a notebook) that ended on an error; one that ended finished itself
+        wandb.run.finish(exit_code=1)
+    wandb.tensorboard.unpatch()  # the earlier run's patch named its own folder
     wandb.tensorboard.patch(root_logdir=f"runs/{run_name}")  # sync_tensorboard=True, but with the folder named: unnamed, wandb waits 10 s at exit to find it
-    try:  # an earlier run in this process is finished, where wandb would return it again outside a notebook
-        return wandb.init(project=args.wandb_project_name, entity=args.wandb_entity, name=run_name, config=vars(args), save_code=True, reinit="finish_previous")
+    try:
+        return wandb.init(project=args.wandb_project_name, entity=args.wandb_entity, name=run_name, config=vars(args), save_code=True)
     except wandb.errors.Error as err:  # its message runs over several lines: keep it on one
         raise ValueError(f"--track: Weights and Biases did not start: {' '.join(str(err).split())}") from None
 
@@ -1178,6 +1180,8 @@ if __name__ == "__main__":
         track_videos(wandb_run, run_name)
     shadow_env.close()
     writer.close()
+    if wandb_run is not None:  # after the writer's last record, with the status the run exits with (run in-process, wandb would not see it)
+        wandb_run.finish(exit_code=stop.status if stop.reason is not None else int(bool(writer.failure)))
     if stop.reason is not None:
         sys.exit(stop.status)
     if writer.failure:  # in the last step's or the evaluation's logs; the model is saved and evaluated

@@ -103,27 +103,43 @@ def test_track_mirrors_the_tensorboard_logs_the_args_and_the_script(script, tmp_
 
 
 def test_runs_one_after_another_in_one_process_each_get_a_wandb_run_of_their_own(tmp_path):
-    """As a notebook or a seed loop with runpy runs them: the second run patches TensorBoard for its own
-    folder and starts its own W&B run (before: `Tensorboard already patched`, and wandb would have
-    returned the first run again outside a notebook)."""
+    """As a notebook or a loop over seeds with runpy runs them. Each run patches TensorBoard for its own
+    folder and starts a W&B run of its own (before: `Tensorboard already patched`, and outside a
+    notebook wandb returns the earlier run again), whose exit code is the run's. Seed 2's env fails in
+    training, which ends the run at its normal end with status 1; seed 3's baseline fails while it is
+    measured, which ends the run before that, so the next run finishes its W&B run as failed."""
     shutil.copy(ROOT / "sac_continuous.py", tmp_path)
+    (tmp_path / "failing.py").write_text(
+        "import gymnasium as gym\nfrom gymnasium.envs.classic_control.pendulum import PendulumEnv\n\n"
+        "class Failing(PendulumEnv):\n    def step(self, action):\n        raise ConnectionError('lost the simulator')\n\n"
+        "def raising(obs):\n    raise RuntimeError('no controller')\n\n"
+        "gym.register('Failing-v0', entry_point=Failing, max_episode_steps=200)\n"
+    )
     args = [*SHORT_RUNS["sac_continuous"], "--baseline-eval-episodes", "1", "--track"]
-    loop = f"import runpy, sys\nfor seed in (1, 2):\n    sys.argv = ['sac_continuous.py', *{args!r}, '--seed', str(seed)]\n    runpy.run_path('sac_continuous.py', run_name='__main__')\n"
-    env = {k: v for k, v in os.environ.items() if not k.startswith("WANDB_")} | {"PYTHONPATH": str(ROOT), "HOME": str(tmp_path), "WANDB_MODE": "offline"}
+    runs = [(1, []), (2, ["--env-id", "failing:Failing-v0"]), (3, ["--baseline", "failing:raising"]), (4, [])]
+    loop = (
+        f"import runpy, sys\nfor seed, more in {runs!r}:\n"
+        f"    sys.argv = ['sac_continuous.py', *{args!r}, '--seed', str(seed), *more]\n"
+        "    try:\n        runpy.run_path('sac_continuous.py', run_name='__main__')\n"
+        "    except SystemExit as end:\n        print('exit', seed, end.code)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if not k.startswith("WANDB_")} | {"PYTHONPATH": f"{tmp_path}{os.pathsep}{ROOT}", "HOME": str(tmp_path), "WANDB_MODE": "offline"}
     out = subprocess.run([sys.executable, "-c", loop], cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
     assert out.returncode == 0, out.stderr
-    folders = sorted((tmp_path / "runs").iterdir())
-    assert [folder.name.split("__")[2] for folder in folders] == ["1", "2"]  # their seeds
-    runs = {}
+    assert "exit 2 1\n" in out.stdout and "exit 3 sac_continuous: error: the baseline raised RuntimeError" in out.stdout, out.stdout
+    folders = {folder.name.split("__")[2]: folder for folder in (tmp_path / "runs").iterdir()}  # by seed
+    assert sorted(folders) == ["1", "2", "3", "4"]
+    exit_codes, records = {}, {}
     for run_file in (tmp_path / "wandb").glob("offline-run-*/run-*.wandb"):
-        records = wandb_records(run_file)
-        (run,) = [r.run for r in records if r.WhichOneof("record_type") == "run"]
-        runs[run.display_name] = records
-    assert sorted(runs) == [folder.name for folder in folders]
-    for folder in folders:
-        assert_mirrors(runs[folder.name], folder)
-        (exit_record,) = [r.exit for r in runs[folder.name] if r.WhichOneof("record_type") == "exit"]
-        assert exit_record.exit_code == 0
+        run_records = wandb_records(run_file)
+        (run,) = [r.run for r in run_records if r.WhichOneof("record_type") == "run"]
+        (exit_record,) = [r.exit for r in run_records if r.WhichOneof("record_type") == "exit"]
+        seed = run.display_name.split("__")[2]
+        assert run.display_name == folders[seed].name
+        exit_codes[seed], records[seed] = exit_record.exit_code, run_records
+    assert exit_codes == {"1": 0, "2": 1, "3": 1, "4": 0}
+    for seed in ("1", "4"):
+        assert_mirrors(records[seed], folders[seed])
 
 
 @pytest.mark.parametrize("script", SHORT_RUNS)
