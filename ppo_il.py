@@ -735,7 +735,7 @@ def track_videos(run, run_name: str) -> None:
 
     folder = f"videos/{run_name}"
     episodes = []
-    for name in os.listdir(folder) if os.path.isdir(folder) else []:
+    for name in os.listdir(folder):  # RecordVideo made it
         match = re.fullmatch(r"rl-video-episode-(\d+)\.mp4", name)
         if match:
             episodes.append(int(match[1]))
