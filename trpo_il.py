@@ -791,7 +791,7 @@ def start_tracking(args: Args, run_name: str):
     if wandb.run is not None:  # an earlier run in this process (runpy, a notebook) that ended on an error; one that ended finished itself
         wandb.run.finish(exit_code=1)
     wandb.tensorboard.unpatch()  # the earlier run's patch named its own folder
-    wandb.tensorboard.patch(root_logdir=f"runs/{run_name}")  # sync_tensorboard=True, but with the folder named: unnamed, wandb waits 10 s at exit to find it
+    wandb.tensorboard.patch(root_logdir=f"runs/{run_name}")  # sync_tensorboard=True with the folder named: unnamed, wandb seeks it for 10 s, and no run ends sooner
     try:
         return wandb.init(project=args.wandb_project_name, entity=args.wandb_entity, name=run_name, config=vars(args), save_code=True)
     except wandb.errors.Error as err:  # its message runs over several lines: keep it on one

@@ -5,7 +5,7 @@ folder holding its own copy of the script:
 - `plain`: without --track;
 - `track`: with --track, as the script starts W&B (the TensorBoard folder named to wandb);
 - `sync_tensorboard`: with --track, with CleanRL's `wandb.init(sync_tensorboard=True)` put in place of
-  the named folder, which leaves wandb looking for the folder at exit.
+  the named folder, with which wandb seeks the folder for 10 s from its start, and no run ends sooner.
 
 The forms run in turn within each repeat (their order rotating), so that a busy machine slows all
 three alike; prints the median and range over the repeats of each form's seconds, and of its ratio to
