@@ -142,6 +142,30 @@ def test_runs_one_after_another_in_one_process_each_get_a_wandb_run_of_their_own
         assert_mirrors(records[seed], folders[seed])
 
 
+def test_a_run_whose_logs_fail_after_training_finishes_its_wandb_run_as_failed(tmp_path):
+    """The evaluation's scalars cannot be written (a full disk): the run ends with status 1 after the
+    loop, and its W&B run is finished with that status, not 0."""
+    shutil.copy(ROOT / "sac_continuous.py", tmp_path)
+    args = [*SHORT_RUNS["sac_continuous"], "--baseline-eval-episodes", "1", "--save-model", "--eval-episodes", "1", "--track"]
+    driver = (
+        "import errno, runpy, sys\nimport torch.utils.tensorboard as tensorboard\n"
+        "real = tensorboard.SummaryWriter.add_scalar\n\n"
+        "def add_scalar(self, tag, *args, **kwargs):\n"
+        "    if tag == 'eval/episodic_return':\n        raise OSError(errno.ENOSPC, 'No space left on device')\n"
+        "    return real(self, tag, *args, **kwargs)\n\n"
+        f"tensorboard.SummaryWriter.add_scalar = add_scalar\nsys.argv = ['sac_continuous.py', *{args!r}]\n"
+        "runpy.run_path('sac_continuous.py', run_name='__main__')\n"
+    )
+    env = {k: v for k, v in os.environ.items() if not k.startswith("WANDB_")} | {"PYTHONPATH": str(ROOT), "HOME": str(tmp_path), "WANDB_MODE": "offline"}
+    out = subprocess.run([sys.executable, "-c", driver], cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
+    (run_name,) = [p.name for p in (tmp_path / "runs").iterdir()]
+    assert out.returncode == 1 and f"sac_continuous: error: cannot write the logs to runs/{run_name}: No space left on device" in out.stderr, out.stderr
+    assert "eval: mean return" in out.stdout  # the failure came after the training and the evaluation
+    _, records = offline_run(tmp_path)
+    (exit_record,) = [r.exit for r in records if r.WhichOneof("record_type") == "exit"]
+    assert exit_record.exit_code == 1
+
+
 @pytest.mark.parametrize("script", SHORT_RUNS)
 def test_track_sends_the_recorded_videos_in_episode_order(script, tmp_path):
     out = run_tracked(script, [*SHORT_RUNS[script], "--baseline-eval-episodes", "1", "--track", "--capture-video"], tmp_path, WANDB_MODE="offline")
