@@ -22,12 +22,17 @@ BLOCK, HEADER = 32768, 7  # the run file's log format: 32 KiB blocks of records,
 FULL, LAST = 1, 4  # a record whole in one piece, and the last piece of one split across blocks
 
 
+def tracked_env(cwd: Path, **env: str) -> dict[str, str]:
+    """This process's environment with no W&B setting of its own, this repository's envs/ importable, and
+    a home in cwd (no login, no cache outside cwd); then `env`."""
+    return {k: v for k, v in os.environ.items() if not k.startswith("WANDB_")} | {"PYTHONPATH": str(ROOT), "HOME": str(cwd)} | env
+
+
 def run_tracked(script: str, args: list[str], cwd: Path, **env: str) -> subprocess.CompletedProcess:
-    """The script, copied into cwd (W&B saves the code of a program under its working directory), run with
-    this repository's envs/ importable and a home of its own (no login, no cache outside cwd)."""
+    """The script, copied into cwd (W&B saves the code of a program under its working directory), run in
+    tracked_env(cwd, **env)."""
     shutil.copy(ROOT / f"{script}.py", cwd)
-    env = {k: v for k, v in os.environ.items() if not k.startswith("WANDB_")} | {"PYTHONPATH": str(ROOT), "HOME": str(cwd)} | env
-    return subprocess.run([sys.executable, f"{script}.py", *args], cwd=cwd, capture_output=True, text=True, env=env, timeout=300)
+    return subprocess.run([sys.executable, f"{script}.py", *args], cwd=cwd, capture_output=True, text=True, env=tracked_env(cwd, **env), timeout=300)
 
 
 def wandb_records(path: Path) -> list:
@@ -123,7 +128,7 @@ def test_runs_one_after_another_in_one_process_each_get_a_wandb_run_of_their_own
         "    try:\n        runpy.run_path('sac_continuous.py', run_name='__main__')\n"
         "    except SystemExit as end:\n        print('exit', seed, end.code)\n"
     )
-    env = {k: v for k, v in os.environ.items() if not k.startswith("WANDB_")} | {"PYTHONPATH": f"{tmp_path}{os.pathsep}{ROOT}", "HOME": str(tmp_path), "WANDB_MODE": "offline"}
+    env = tracked_env(tmp_path, PYTHONPATH=f"{tmp_path}{os.pathsep}{ROOT}", WANDB_MODE="offline")
     out = subprocess.run([sys.executable, "-c", loop], cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
     assert out.returncode == 0, out.stderr
     assert "exit 2 1\n" in out.stdout and "exit 3 sac_continuous: error: the baseline raised RuntimeError" in out.stdout, out.stdout
@@ -156,8 +161,7 @@ def test_a_run_whose_logs_fail_after_training_finishes_its_wandb_run_as_failed(t
         f"tensorboard.SummaryWriter.add_scalar = add_scalar\nsys.argv = ['sac_continuous.py', *{args!r}]\n"
         "runpy.run_path('sac_continuous.py', run_name='__main__')\n"
     )
-    env = {k: v for k, v in os.environ.items() if not k.startswith("WANDB_")} | {"PYTHONPATH": str(ROOT), "HOME": str(tmp_path), "WANDB_MODE": "offline"}
-    out = subprocess.run([sys.executable, "-c", driver], cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
+    out = subprocess.run([sys.executable, "-c", driver], cwd=tmp_path, capture_output=True, text=True, env=tracked_env(tmp_path, WANDB_MODE="offline"), timeout=300)
     (run_name,) = [p.name for p in (tmp_path / "runs").iterdir()]
     assert out.returncode == 1 and f"sac_continuous: error: cannot write the logs to runs/{run_name}: No space left on device" in out.stderr, out.stderr
     assert "eval: mean return" in out.stdout  # the failure came after the training and the evaluation
