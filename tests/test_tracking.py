@@ -28,11 +28,15 @@ def tracked_env(cwd: Path, **env: str) -> dict[str, str]:
     return {k: v for k, v in os.environ.items() if not k.startswith("WANDB_")} | {"PYTHONPATH": str(ROOT), "HOME": str(cwd)} | env
 
 
-def run_tracked(script: str, args: list[str], cwd: Path, **env: str) -> subprocess.CompletedProcess:
-    """The script, copied into cwd (W&B saves the code of a program under its working directory), run in
-    tracked_env(cwd, **env)."""
+def run_copied(script: str, python_args: list[str], cwd: Path, **env: str) -> subprocess.CompletedProcess:
+    """`python *python_args` in cwd and tracked_env(cwd, **env), with the script copied into cwd first
+    (W&B saves the code of a program under its working directory)."""
     shutil.copy(ROOT / f"{script}.py", cwd)
-    return subprocess.run([sys.executable, f"{script}.py", *args], cwd=cwd, capture_output=True, text=True, env=tracked_env(cwd, **env), timeout=300)
+    return subprocess.run([sys.executable, *python_args], cwd=cwd, capture_output=True, text=True, env=tracked_env(cwd, **env), timeout=300)
+
+
+def run_tracked(script: str, args: list[str], cwd: Path, **env: str) -> subprocess.CompletedProcess:
+    return run_copied(script, [f"{script}.py", *args], cwd, **env)
 
 
 def wandb_records(path: Path) -> list:
@@ -113,7 +117,6 @@ def test_runs_one_after_another_in_one_process_each_get_a_wandb_run_of_their_own
     notebook wandb returns the earlier run again), whose exit code is the run's. Seed 2's env fails in
     training, which ends the run at its normal end with status 1; seed 3's baseline fails while it is
     measured, which ends the run before that, so the next run finishes its W&B run as failed."""
-    shutil.copy(ROOT / "sac_continuous.py", tmp_path)
     (tmp_path / "failing.py").write_text(
         "import gymnasium as gym\nfrom gymnasium.envs.classic_control.pendulum import PendulumEnv\n\n"
         "class Failing(PendulumEnv):\n    def step(self, action):\n        raise ConnectionError('lost the simulator')\n\n"
@@ -128,8 +131,7 @@ def test_runs_one_after_another_in_one_process_each_get_a_wandb_run_of_their_own
         "    try:\n        runpy.run_path('sac_continuous.py', run_name='__main__')\n"
         "    except SystemExit as end:\n        print('exit', seed, end.code)\n"
     )
-    env = tracked_env(tmp_path, PYTHONPATH=f"{tmp_path}{os.pathsep}{ROOT}", WANDB_MODE="offline")
-    out = subprocess.run([sys.executable, "-c", loop], cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
+    out = run_copied("sac_continuous", ["-c", loop], tmp_path, PYTHONPATH=f"{tmp_path}{os.pathsep}{ROOT}", WANDB_MODE="offline")
     assert out.returncode == 0, out.stderr
     assert "exit 2 1\n" in out.stdout and "exit 3 sac_continuous: error: the baseline raised RuntimeError" in out.stdout, out.stdout
     folders = {folder.name.split("__")[2]: folder for folder in (tmp_path / "runs").iterdir()}  # by seed
@@ -150,7 +152,6 @@ def test_runs_one_after_another_in_one_process_each_get_a_wandb_run_of_their_own
 def test_a_run_whose_logs_fail_after_training_finishes_its_wandb_run_as_failed(tmp_path):
     """The evaluation's scalars cannot be written (a full disk): the run ends with status 1 after the
     loop, and its W&B run is finished with that status, not 0."""
-    shutil.copy(ROOT / "sac_continuous.py", tmp_path)
     args = [*SHORT_RUNS["sac_continuous"], "--baseline-eval-episodes", "1", "--save-model", "--eval-episodes", "1", "--track"]
     driver = (
         "import errno, runpy, sys\nimport torch.utils.tensorboard as tensorboard\n"
@@ -161,7 +162,7 @@ def test_a_run_whose_logs_fail_after_training_finishes_its_wandb_run_as_failed(t
         f"tensorboard.SummaryWriter.add_scalar = add_scalar\nsys.argv = ['sac_continuous.py', *{args!r}]\n"
         "runpy.run_path('sac_continuous.py', run_name='__main__')\n"
     )
-    out = subprocess.run([sys.executable, "-c", driver], cwd=tmp_path, capture_output=True, text=True, env=tracked_env(tmp_path, WANDB_MODE="offline"), timeout=300)
+    out = run_copied("sac_continuous", ["-c", driver], tmp_path, WANDB_MODE="offline")
     (run_name,) = [p.name for p in (tmp_path / "runs").iterdir()]
     assert out.returncode == 1 and f"sac_continuous: error: cannot write the logs to runs/{run_name}: No space left on device" in out.stderr, out.stderr
     assert "eval: mean return" in out.stdout  # the failure came after the training and the evaluation
