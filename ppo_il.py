@@ -713,7 +713,7 @@ def start_tracking(args: Args, run_name: str):
     """The Weights and Biases run of --track, which mirrors the TensorBoard logs of runs/{run_name} (the
     writer is made after it) and keeps Args and this script; ValueError when it cannot start (no wandb,
     no login, no server), before anything is trained. Not monitor_gym: its hook fails at gymnasium 1.x's
-    RecordVideo.close (wandb issue 9947), so track_videos sends the videos at the end instead."""
+    RecordVideo.close (wandb issue 9947), so track_videos sends each video once RecordVideo has written it."""
     try:
         import wandb
     except ImportError:
@@ -728,19 +728,22 @@ def start_tracking(args: Args, run_name: str):
         raise ValueError(f"--track: Weights and Biases did not start: {' '.join(str(err).split())}") from None
 
 
-def track_videos(run, run_name: str) -> None:
-    """Send the videos of --capture-video to the --track run, in episode order (RecordVideo names them
-    rl-video-episode-{e}.mp4, and writes that of an episode still running when the env closes)."""
+def track_videos(run, run_name: str, sent: set, global_step: int) -> None:
+    """Send the --capture-video videos not in `sent` (episode numbers) to the --track run, in episode
+    order, at global_step, and add them to it. RecordVideo names them rl-video-episode-{e}.mp4 and writes
+    one when the next episode starts, or when the env closes for an episode still running: call this
+    after each reset and after env.close()."""
     import wandb
 
     folder = f"videos/{run_name}"
     episodes = []
     for name in os.listdir(folder):  # RecordVideo made it
         match = re.fullmatch(r"rl-video-episode-(\d+)\.mp4", name)
-        if match:
+        if match and int(match[1]) not in sent:
             episodes.append(int(match[1]))
     for episode in sorted(episodes):
-        run.log({"videos": wandb.Video(f"{folder}/rl-video-episode-{episode}.mp4")})
+        run.log({"videos": wandb.Video(f"{folder}/rl-video-episode-{episode}.mp4"), "global_step": global_step})
+        sent.add(episode)
 
 
 class CheckedWriter(SummaryWriter):
@@ -935,6 +938,7 @@ if __name__ == "__main__":
     global_step = 0
     start_time = time.time()
     episode, episode_rewards = 0, []
+    videos_sent: set = set()  # the episodes whose video --track has sent
     try:
         raw_obs, _ = env.reset(seed=args.seed)
     except ValueError as err:  # a NaN, or an exception of the env's own (CheckedEnv)
@@ -1027,6 +1031,8 @@ if __name__ == "__main__":
                 except ValueError as err:
                     stop.end(f"{args.exp_name}: error: {err}", 1)
                     break
+                if wandb_run is not None and args.capture_video:  # the ended episode's video, if RecordVideo recorded it
+                    track_videos(wandb_run, run_name, videos_sent, global_step)
                 if estimator == "paired":
                     t0 = time.time()
                     try:
@@ -1144,7 +1150,7 @@ if __name__ == "__main__":
 
     env.close()  # RecordVideo writes the video of an unfinished episode here
     if wandb_run is not None and args.capture_video:
-        track_videos(wandb_run, run_name)
+        track_videos(wandb_run, run_name, videos_sent, global_step)
     shadow_env.close()
     writer.close()
     if wandb_run is not None:  # after the writer's last record, with the status the run exits with (run in-process, wandb would not see it)

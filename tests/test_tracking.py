@@ -171,17 +171,25 @@ def test_a_run_whose_logs_fail_after_training_finishes_its_wandb_run_as_failed(t
     assert exit_record.exit_code == 1
 
 
+LAST_STEP = {"sac_continuous": 249, "jirl_sac_continuous": 249, "ppo_il": 256, "trpo_il": 256}  # global_step when SHORT_RUNS' loops end
+
+
 @pytest.mark.parametrize("script", SHORT_RUNS)
-def test_track_sends_the_recorded_videos_in_episode_order(script, tmp_path):
+def test_track_sends_each_recorded_video_once_written_in_episode_order(script, tmp_path):
     out = run_tracked(script, [*SHORT_RUNS[script], "--baseline-eval-episodes", "1", "--track", "--capture-video"], tmp_path, WANDB_MODE="offline")
     assert out.returncode == 0, out.stderr
     (videos,) = (tmp_path / "videos").iterdir()
     recorded = sorted(videos.glob("*.mp4"))
     assert [p.name for p in recorded] == ["rl-video-episode-0.mp4", "rl-video-episode-1.mp4"]  # RecordVideo's cubic schedule
     run_dir, records = offline_run(tmp_path)
-    sent = [json.loads(item.value_json) for r in records if r.WhichOneof("record_type") == "history" for item in r.history.item if list(item.nested_key) == ["videos", "path"]]
+    rows = [{item.key or "/".join(item.nested_key): json.loads(item.value_json) for item in r.history.item} for r in records if r.WhichOneof("record_type") == "history"]
+    sent = [(row["videos/path"], row["global_step"]) for row in rows if "videos/path" in row]
     assert len(sent) == 2
-    for path, original in zip(sent, recorded):  # episode 1's, cut short by the run's end and written as the env closed, too
+    # each as soon as it was written: episode 0's at the step it ended (its return's step), not at the run's end
+    events = EventAccumulator(str(tmp_path / "runs" / videos.name), size_guidance={"scalars": 0})
+    events.Reload()
+    assert [step for _, step in sent] == [events.Scalars("charts/episodic_return")[0].step, LAST_STEP[script]]
+    for (path, _), original in zip(sent, recorded):  # episode 1's, cut short by the run's end and written as the env closed, too
         assert (run_dir / "files" / path).read_bytes() == original.read_bytes()
 
 
