@@ -912,13 +912,16 @@ def start_tracking(args: Args, run_name: str):
     """The Weights and Biases run of --track, which mirrors the TensorBoard logs of runs/{run_name} (the
     writer is made after it) and keeps Args and this script; ValueError when it cannot start (no wandb,
     no login, no server), before anything is trained. Not monitor_gym: its hook fails at gymnasium 1.x's
-    RecordVideo.close (wandb issue 9947), so track_videos sends each video once RecordVideo has written it."""
+    RecordVideo.close (wandb issue 9947), so VideoTracker sends each video once RecordVideo has written it."""
     try:
         import wandb
     except ImportError:
         raise ValueError("--track needs Weights and Biases (pip install wandb)") from None
-    if wandb.run is not None:  # an earlier run in this process (runpy, a notebook) that ended on an error; one that ended finished itself
-        wandb.run.finish(exit_code=1)
+    if wandb.run is not None:  # an earlier run in this process (runpy, a notebook) that ended on an error, or whose W&B process died
+        try:
+            wandb.run.finish(exit_code=1)
+        except Exception:  # that process is gone; wandb.init starts another
+            pass
     wandb.tensorboard.unpatch()  # the earlier run's patch named its own folder
     wandb.tensorboard.patch(root_logdir=f"runs/{run_name}")  # sync_tensorboard=True with the folder named: unnamed, wandb seeks it for 10 s, and no run ends sooner
     try:
@@ -927,22 +930,44 @@ def start_tracking(args: Args, run_name: str):
         raise ValueError(f"--track: Weights and Biases did not start: {' '.join(str(err).split())}") from None
 
 
-def track_videos(run, run_name: str, sent: set, global_step: int) -> None:
-    """Send the --capture-video videos not in `sent` (episode numbers) to the --track run, in episode
-    order, at global_step, and add them to it. RecordVideo names them rl-video-episode-{e}.mp4 and writes
-    one when the next episode starts, or when the env closes for an episode still running: call this
-    after each reset and after env.close()."""
+class VideoTracker:
+    """Sends the videos of --capture-video to the --track run, each once written: RecordVideo writes
+    rl-video-episode-{e}.mp4 when the next episode starts, or when the env closes for an episode still
+    running, so send() is called after each reset and after env.close(). One that cannot be sent (W&B's
+    process gone, the folder removed) is named in one line and ends the sending, not the training."""
+
+    def __init__(self, run, run_name: str) -> None:
+        self.run, self.folder, self.sent, self.failed = run, f"videos/{run_name}", set(), False
+
+    def send(self, global_step: int) -> None:
+        if self.failed:
+            return
+        import wandb
+
+        try:
+            written = {int(match[1]) for match in (re.fullmatch(r"rl-video-episode-(\d+)\.mp4", name) for name in os.listdir(self.folder)) if match}
+            for episode in sorted(written - self.sent):
+                self.run.log({"videos": wandb.Video(f"{self.folder}/rl-video-episode-{episode}.mp4"), "global_step": global_step})
+                self.sent.add(episode)
+        except Exception as err:  # the run's logs and model do not depend on W&B
+            self.failed = True
+            print(f"--track: a video could not be sent at step {global_step} ({kind(err)}: {err}); the run goes on, sending no more", file=sys.stderr)
+
+
+def finish_tracking(run, exit_code: int) -> None:
+    """Finish the --track run with the status the run exits with. A W&B process that died during the run
+    is named in one line, not a traceback, and leaves that status as it is: the TensorBoard logs and the
+    model are whole."""
     import wandb
 
-    folder = f"videos/{run_name}"
-    episodes = []
-    for name in os.listdir(folder):  # RecordVideo made it
-        match = re.fullmatch(r"rl-video-episode-(\d+)\.mp4", name)
-        if match and int(match[1]) not in sent:
-            episodes.append(int(match[1]))
-    for episode in sorted(episodes):
-        run.log({"videos": wandb.Video(f"{folder}/rl-video-episode-{episode}.mp4"), "global_step": global_step})
-        sent.add(episode)
+    try:
+        run.finish(exit_code=exit_code)
+    except Exception as err:  # wandb's own exit hook would then raise again: tear it down here
+        print(f"--track: Weights and Biases did not finish the run ({kind(err)}: {err}); runs/ has its logs", file=sys.stderr)
+        try:
+            wandb.teardown()
+        except Exception:
+            pass
 
 
 class CheckedWriter(SummaryWriter):
@@ -1105,7 +1130,7 @@ if __name__ == "__main__":
     # TRY NOT TO MODIFY: start the game
     start_time = time.time()
     episode, episode_rewards = 0, []
-    videos_sent: set = set()  # the episodes whose video --track has sent
+    videos = VideoTracker(wandb_run, run_name) if wandb_run is not None and args.capture_video else None
     try:
         obs, _ = env.reset(seed=args.seed)
     except ValueError as err:  # a NaN, or an exception of the env's own (CheckedEnv)
@@ -1225,8 +1250,8 @@ if __name__ == "__main__":
             except ValueError as err:
                 stop.end(f"{args.exp_name}: error: {err}", 1)
                 break
-            if wandb_run is not None and args.capture_video:  # the ended episode's video, if RecordVideo recorded it
-                track_videos(wandb_run, run_name, videos_sent, global_step)
+            if videos is not None:  # the ended episode's video, if RecordVideo recorded it
+                videos.send(global_step)
             if estimator == "paired":
                 t0 = time.time()
                 try:
@@ -1282,13 +1307,13 @@ if __name__ == "__main__":
         print(f"eval: mean return {np.mean(episodic_returns):.1f} over {len(episodic_returns)} episodes")
 
     env.close()  # RecordVideo writes the video of an unfinished episode here
-    if wandb_run is not None and args.capture_video:
-        track_videos(wandb_run, run_name, videos_sent, global_step)
+    if videos is not None:
+        videos.send(global_step)
     if shadow_env is not None:
         shadow_env.close()
     writer.close()
     if wandb_run is not None:  # after the writer's last record, with the status the run exits with (run in-process, wandb would not see it)
-        wandb_run.finish(exit_code=stop.status if stop.reason is not None else int(bool(writer.failure)))
+        finish_tracking(wandb_run, stop.status if stop.reason is not None else int(bool(writer.failure)))
     if stop.reason is not None:
         sys.exit(stop.status)
     if writer.failure:  # in the last step's or the evaluation's logs; the model is saved and evaluated

@@ -4,6 +4,7 @@ TensorBoard logs it mirrors, the Args the script resolved, the script itself, an
 
 import json
 import os
+import re
 import shutil
 import struct
 import subprocess
@@ -149,22 +150,23 @@ def test_runs_one_after_another_in_one_process_each_get_a_wandb_run_of_their_own
         assert_mirrors(records[seed], folders[seed])
 
 
-def test_a_run_whose_logs_fail_after_training_finishes_its_wandb_run_as_failed(tmp_path):
+@pytest.mark.parametrize("script", SHORT_RUNS)
+def test_a_run_whose_logs_fail_after_training_finishes_its_wandb_run_as_failed(script, tmp_path):
     """The evaluation's scalars cannot be written (a full disk): the run ends with status 1 after the
     loop, and its W&B run is finished with that status, not 0."""
-    args = [*SHORT_RUNS["sac_continuous"], "--baseline-eval-episodes", "1", "--save-model", "--eval-episodes", "1", "--track"]
+    args = [*SHORT_RUNS[script], "--baseline-eval-episodes", "1", "--save-model", "--eval-episodes", "1", "--track"]
     driver = (
         "import errno, runpy, sys\nimport torch.utils.tensorboard as tensorboard\n"
         "real = tensorboard.SummaryWriter.add_scalar\n\n"
         "def add_scalar(self, tag, *args, **kwargs):\n"
         "    if tag == 'eval/episodic_return':\n        raise OSError(errno.ENOSPC, 'No space left on device')\n"
         "    return real(self, tag, *args, **kwargs)\n\n"
-        f"tensorboard.SummaryWriter.add_scalar = add_scalar\nsys.argv = ['sac_continuous.py', *{args!r}]\n"
-        "runpy.run_path('sac_continuous.py', run_name='__main__')\n"
+        f"tensorboard.SummaryWriter.add_scalar = add_scalar\nsys.argv = ['{script}.py', *{args!r}]\n"
+        f"runpy.run_path('{script}.py', run_name='__main__')\n"
     )
-    out = run_copied("sac_continuous", ["-c", driver], tmp_path, WANDB_MODE="offline")
+    out = run_copied(script, ["-c", driver], tmp_path, WANDB_MODE="offline")
     (run_name,) = [p.name for p in (tmp_path / "runs").iterdir()]
-    assert out.returncode == 1 and f"sac_continuous: error: cannot write the logs to runs/{run_name}: No space left on device" in out.stderr, out.stderr
+    assert out.returncode == 1 and f"{script}: error: cannot write the logs to runs/{run_name}: No space left on device" in out.stderr, out.stderr
     assert "eval: mean return" in out.stdout  # the failure came after the training and the evaluation
     _, records = offline_run(tmp_path)
     (exit_record,) = [r.exit for r in records if r.WhichOneof("record_type") == "exit"]
@@ -217,3 +219,47 @@ def test_bad_input_with_track_starts_no_wandb_run(tmp_path):
     out = run_tracked("sac_continuous", ["--env-id", "NoSuchEnv-v0", "--track"], tmp_path, WANDB_MODE="offline")
     assert out.returncode == 1 and out.stderr.strip().splitlines()[-1].startswith("sac_continuous: error: unknown env id 'NoSuchEnv-v0'"), out.stderr
     assert not (tmp_path / "wandb").exists() and not (tmp_path / "runs").exists()
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="finds W&B's process in /proc")
+def test_a_wandb_process_that_dies_during_the_run_ends_neither_the_training_nor_the_run(tmp_path):
+    """W&B's own process (wandb-core, this run's child) is killed as the first video is sent, at episode
+    0's end: the training goes on to its end, saves and evaluates its model, and the run exits 0. stderr
+    names the video not sent and the W&B run not finished, in one line each, with no traceback (wandb's
+    exit hook raised one too until torn down). A second run in the same process (a notebook's next cell)
+    gets a W&B run of its own, which mirrors its folder (its start raised on the dead run until caught)."""
+    args = [*SHORT_RUNS["sac_continuous"], "--baseline-eval-episodes", "1", "--save-model", "--eval-episodes", "1", "--track", "--capture-video"]
+    driver = (
+        "import os, runpy, signal, sys, time, wandb\nreal = wandb.Video.__init__\n\n"
+        "def video(self, *args, **kwargs):\n"
+        "    for pid in filter(str.isdigit, os.listdir('/proc')):\n"
+        "        try:\n"
+        "            ppid = int(open(f'/proc/{pid}/stat').read().rsplit(')', 1)[1].split()[1])\n"
+        "            command = open(f'/proc/{pid}/cmdline', 'rb').read()\n"
+        "        except OSError:\n            continue\n"
+        "        if ppid == os.getpid() and b'wandb-core' in command:\n"
+        "            os.kill(int(pid), signal.SIGKILL)\n            os.waitpid(int(pid), 0)\n            print('killed', pid, flush=True)\n"
+        "    real(self, *args, **kwargs)\n\n"
+        f"wandb.Video.__init__ = video\nsys.argv = ['sac_continuous.py', *{args!r}]\n"
+        "runpy.run_path('sac_continuous.py', run_name='__main__')\n"
+        f"sys.argv = ['sac_continuous.py', *{args[:-1]!r}, '--seed', '2']\n"  # no videos: its history is the scalars alone
+        "runpy.run_path('sac_continuous.py', run_name='__main__')\n"
+    )
+    out = run_copied("sac_continuous", ["-c", driver], tmp_path, WANDB_MODE="offline")
+    assert out.returncode == 0 and "Traceback" not in out.stderr and "Exception ignored" not in out.stderr, out.stderr
+    lines = out.stdout.splitlines()
+    killed = next(i for i, line in enumerate(lines) if line.startswith("killed"))
+    first_end = next(i for i, line in enumerate(lines) if line.startswith("eval: mean return"))
+    assert lines[killed - 1].startswith("global_step=199,") and lines[first_end - 1].startswith("model saved to") and killed < first_end
+    folders = {p.name.split("__")[2]: p for p in (tmp_path / "runs").iterdir()}
+    assert set(folders) == {"1", "2"} and (folders["1"] / "sac_continuous.cleanrl_model").is_file()
+    second = []
+    for run_file in (tmp_path / "wandb").glob("offline-run-*/run-*.wandb"):
+        records = wandb_records(run_file)
+        if [r.run.display_name for r in records if r.WhichOneof("record_type") == "run"] == [folders["2"].name]:
+            second.append(records)
+    (records,) = second
+    assert [r.exit.exit_code for r in records if r.WhichOneof("record_type") == "exit"] == [0]
+    assert_mirrors(records, folders["2"])
+    assert re.findall(r"^--track: a video could not be sent at step (\d+) \(\w+Error: .+\); the run goes on, sending no more$", out.stderr, re.M) == ["199"], out.stderr
+    assert re.search(r"^--track: Weights and Biases did not finish the run \(\w+Error: .+\); runs/ has its logs$", out.stderr, re.M), out.stderr
