@@ -78,11 +78,16 @@ def history(records: list) -> dict[str, list[tuple[int, float]]]:
     return found
 
 
-def assert_mirrors(records: list, tensorboard_dir: Path) -> None:
-    """The W&B run holds every scalar of the TensorBoard folder, each at its step, and nothing else."""
+def logged_scalars(tensorboard_dir: Path) -> dict[str, list[tuple[int, float]]]:
+    """Each TensorBoard tag's (step, value) pairs, by step."""
     events = EventAccumulator(str(tensorboard_dir), size_guidance={"scalars": 0})
     events.Reload()
-    logged = {tag: sorted((e.step, e.value) for e in events.Scalars(tag)) for tag in events.Tags()["scalars"]}
+    return {tag: sorted((e.step, e.value) for e in events.Scalars(tag)) for tag in events.Tags()["scalars"]}
+
+
+def assert_mirrors(records: list, tensorboard_dir: Path) -> None:
+    """The W&B run holds every scalar of the TensorBoard folder, each at its step, and nothing else."""
+    logged = logged_scalars(tensorboard_dir)
     mirrored = {tag: sorted(pairs) for tag, pairs in history(records).items()}
     assert {"charts/episodic_return", "charts/SPS", "charts/baseline_regret"} <= set(logged)
     assert any(tag.startswith("losses/") for tag in logged)
@@ -188,9 +193,8 @@ def test_track_sends_each_recorded_video_once_written_in_episode_order(script, t
     sent = [(row["videos/path"], row["global_step"]) for row in rows if "videos/path" in row]
     assert len(sent) == 2
     # each as soon as it was written: episode 0's at the step it ended (its return's step), not at the run's end
-    events = EventAccumulator(str(tmp_path / "runs" / videos.name), size_guidance={"scalars": 0})
-    events.Reload()
-    assert [step for _, step in sent] == [events.Scalars("charts/episodic_return")[0].step, LAST_STEP[script]]
+    (episode_0_end, _), *_ = logged_scalars(tmp_path / "runs" / videos.name)["charts/episodic_return"]
+    assert [step for _, step in sent] == [episode_0_end, LAST_STEP[script]]
     for (path, _), original in zip(sent, recorded):  # episode 1's, cut short by the run's end and written as the env closed, too
         assert (run_dir / "files" / path).read_bytes() == original.read_bytes()
 
@@ -230,7 +234,7 @@ def test_a_wandb_process_that_dies_during_the_run_ends_neither_the_training_nor_
     gets a W&B run of its own, which mirrors its folder (its start raised on the dead run until caught)."""
     args = [*SHORT_RUNS["sac_continuous"], "--baseline-eval-episodes", "1", "--save-model", "--eval-episodes", "1", "--track", "--capture-video"]
     driver = (
-        "import os, runpy, signal, sys, time, wandb\nreal = wandb.Video.__init__\n\n"
+        "import os, runpy, signal, sys, wandb\nreal = wandb.Video.__init__\n\n"
         "def video(self, *args, **kwargs):\n"
         "    for pid in filter(str.isdigit, os.listdir('/proc')):\n"
         "        try:\n"
