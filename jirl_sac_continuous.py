@@ -1008,10 +1008,11 @@ class CheckedWriter(SummaryWriter):
 
 
 class StopRequest:
-    """Why the training ends before its last step: Ctrl-C (SIGINT) or SIGTERM (`kill`, `timeout`, a
-    cluster's time limit), caught so that the run ends at the training loop's next turn instead of at
-    once; or an env, a baseline or the logs that failed. Either way --save-model still saves what was
-    learnt. The first signal puts the previous handlers back, so a second one acts as it always did.
+    """Why the training ends before its last step: Ctrl-C (SIGINT), SIGTERM (`kill`, `timeout`, a
+    cluster's time limit) or SIGHUP (the ssh session or terminal it runs in went away), caught so that
+    the run ends at the training loop's next turn instead of at once; or an env, a baseline or the logs
+    that failed. Either way --save-model still saves what was learnt. The first signal puts the previous
+    handlers back, so a second one acts as it always did.
     A signal that comes after the loop that made the request has gone (it crashed in a Python that goes
     on: runpy, IPython's %run) goes to the previous handler at once, instead of waiting for a loop that
     will never read it."""
@@ -1021,10 +1022,11 @@ class StopRequest:
         self.status = 0  # the run's exit status then
         self.previous: dict = {}
         self.loop_code = sys._getframe(1).f_code  # the code that made this request and runs the training loop
+        self.terminals = [fd for fd in (1, 2) if os.isatty(fd)]  # stdout and stderr on a terminal, which a hang-up takes away
         if threading.current_thread() is not threading.main_thread():  # only the main thread may handle signals
             return
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            if signal.getsignal(sig) is not signal.SIG_IGN:  # an ignored one stays ignored (a script's background job ignores Ctrl-C)
+        for sig in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)):  # no SIGHUP on Windows
+            if sig is not None and signal.getsignal(sig) is not signal.SIG_IGN:  # an ignored one stays ignored (Ctrl-C in a script's background job, SIGHUP under nohup)
                 self.previous[sig] = signal.signal(sig, self.request)
 
     def request(self, signum: int, frame: Optional[FrameType]) -> None:
@@ -1036,6 +1038,11 @@ class StopRequest:
             else:
                 signal.raise_signal(signum)  # the default action, back in place
             return
+        if signum == getattr(signal, "SIGHUP", None):  # writing to the hung-up terminal would fail (EIO) before the model is saved
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            for fd in self.terminals:
+                os.dup2(devnull, fd)
+            os.close(devnull)
         self.end(f"{signal.Signals(signum).name} received", 128 + signum)  # the status a shell gives a process the signal ended
 
     def end(self, reason: str, status: int) -> None:

@@ -7,7 +7,9 @@ process exits with the status a shell gives a signalled process, or 1. A long ru
 broke keeps its model."""
 
 import errno
+import fcntl
 import os
+import pty
 import re
 import resource
 import runpy
@@ -15,6 +17,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import termios
 import threading
 import time
 
@@ -166,6 +169,61 @@ def test_a_signalled_run_saves_its_model_without_evaluating_it(tmp_path):
             process.kill()
             process.wait()
             process.stdout.close()
+
+
+def on_a_terminal() -> None:
+    """In the child, started in a session of its own: the pty on its stdin becomes its controlling
+    terminal, as an ssh session's or a terminal window's is, and SIGHUP takes its default action there."""
+    fcntl.ioctl(0, termios.TIOCSCTTY, 0)
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="no hang-up on Windows")
+def test_a_hang_up_saves_the_model_and_the_lines_go_with_the_terminal(tmp_path):
+    """An ssh session that drops, or a terminal window closed: the terminal hangs up, the kernel sends
+    SIGHUP to the run in it, and every write to it fails from then on (EIO). Each script ends at the
+    loop's next turn, exits 129 and keeps a whole model. SIGHUP used to end the run at once, without
+    its model; caught alone, the run's next line ("training stopped", on stderr) raised OSError before
+    the save."""
+    started = {}
+    for script in SCRIPTS:  # side by side, each on a terminal of its own
+        cwd = tmp_path / script
+        cwd.mkdir()
+        master, terminal = pty.openpty()
+        args = [*without(SHORT_RUNS[script], "--total-timesteps"), "--total-timesteps", "10000000", "--baseline-eval-episodes", "1", "--save-model"]
+        process = subprocess.Popen([sys.executable, str(ROOT / f"{script}.py"), *args], cwd=cwd, stdin=terminal, stdout=terminal, stderr=terminal,
+                                   start_new_session=True, preexec_fn=on_a_terminal, env={**os.environ, "PYTHONUNBUFFERED": "1"})  # fmt: skip
+        os.close(terminal)
+        started[script] = (process, master, cwd)
+    watchdogs = [threading.Timer(180, process.kill) for process, _, _ in started.values()]  # a run that hangs fails the test, not CI
+    for watchdog in watchdogs:
+        watchdog.start()
+    try:
+        for script, (process, master, cwd) in started.items():
+            (trigger, times), shown = TRIGGER[script], ""
+            while shown.count(f"\n{trigger}") < times:
+                try:
+                    shown += os.read(master, 4096).decode(errors="replace")
+                except OSError:  # the run ended: nothing is left on the terminal's other side
+                    break
+            assert shown.count(f"\n{trigger}") >= times, shown
+            os.close(master)  # the hang-up
+            assert process.wait(timeout=60) == 128 + signal.SIGHUP, shown
+            (run_dir,) = (cwd / "runs").iterdir()
+            logged = scalars(run_dir)
+            assert "eval/episodic_return" not in logged and len(logged["charts/episodic_return"]) >= 2
+            (episode_return,) = load_script(script).evaluate(str(run_dir / f"{script}.cleanrl_model"), "Pendulum-v1", 1, 0)  # saved whole
+            assert np.isfinite(episode_return)
+    finally:
+        for watchdog in watchdogs:
+            watchdog.cancel()
+        for process, master, _ in started.values():
+            process.kill()
+            process.wait()
+            try:
+                os.close(master)
+            except OSError:  # closed by the test
+                pass
 
 
 def test_flaw_names_what_makes_an_envs_return_unusable(sac):
