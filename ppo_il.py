@@ -844,6 +844,7 @@ class StopRequest:
             for fd in self.terminals:
                 os.dup2(devnull, fd)
             os.close(devnull)
+            self.previous[signum] = signal.SIG_IGN  # from here on: a second hang-up (a shell passing it on) is no request to stop at once
         self.end(f"{signal.Signals(signum).name} received", 128 + signum)  # the status a shell gives a process the signal ended
 
     def end(self, reason: str, status: int) -> None:

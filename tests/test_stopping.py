@@ -182,9 +182,9 @@ def on_a_terminal() -> None:
 def test_a_hang_up_saves_the_model_and_the_lines_go_with_the_terminal(tmp_path):
     """An ssh session that drops, or a terminal window closed: the terminal hangs up, the kernel sends
     SIGHUP to the run in it, and every write to it fails from then on (EIO). Each script ends at the
-    loop's next turn, exits 129 and keeps a whole model. SIGHUP used to end the run at once, without
-    its model; caught alone, the run's next line ("training stopped", on stderr) raised OSError before
-    the save."""
+    loop's next turn, exits 129 and keeps a whole model; a second SIGHUP changes nothing. SIGHUP used to
+    end the run at once, without its model; caught alone, the run's next line ("training stopped", on
+    stderr) raised OSError before the save."""
     started = {}
     for script in SCRIPTS:  # side by side, each on a terminal of its own
         cwd = tmp_path / script
@@ -208,6 +208,8 @@ def test_a_hang_up_saves_the_model_and_the_lines_go_with_the_terminal(tmp_path):
                     break
             assert shown.count(f"\n{trigger}") >= times, shown
             os.close(master)  # the hang-up
+            time.sleep(0.3)
+            process.send_signal(signal.SIGHUP)  # and a second one, as a shell may pass it on, while the run saves its model
             assert process.wait(timeout=60) == 128 + signal.SIGHUP, shown
             (run_dir,) = (cwd / "runs").iterdir()
             logged = scalars(run_dir)
