@@ -813,7 +813,7 @@ class StopRequest:
     cluster's time limit) or SIGHUP (the ssh session or terminal it runs in went away), caught so that
     the run ends at the training loop's next turn instead of at once; or an env, a baseline or the logs
     that failed. Either way --save-model still saves what was learnt. The first signal puts the previous
-    handlers back, so a second one acts as it always did.
+    handlers back, so a second one acts as it always did; after a hang-up, SIGHUP is ignored.
     A signal that comes after the loop that made the request has gone (it crashed in a Python that goes
     on: runpy, IPython's %run) goes to the previous handler at once, instead of waiting for a loop that
     will never read it."""
