@@ -6,6 +6,7 @@ process exits with the status a shell gives a signalled process, or 1. A long ru
 `timeout`, by a cluster's time limit, by a simulation that diverged or broke, or by a baseline that
 broke keeps its model."""
 
+import contextlib
 import errno
 import fcntl
 import os
@@ -20,6 +21,8 @@ import sys
 import termios
 import threading
 import time
+from pathlib import Path
+from typing import Callable, Iterator
 
 import gymnasium as gym
 import numpy as np
@@ -120,19 +123,53 @@ SIGNAL = {"sac_continuous": signal.SIGINT, "jirl_sac_continuous": signal.SIGTERM
 SAVE = {"sac_continuous": True, "jirl_sac_continuous": True, "ppo_il": True, "trpo_il": False}  # one run without --save-model
 
 
-def test_a_signalled_run_saves_its_model_without_evaluating_it(tmp_path):
+@contextlib.contextmanager
+def side_by_side(tmp_path: Path, start: Callable[[str, list[str], Path], subprocess.Popen], save: dict[str, bool]) -> Iterator[dict]:
+    """Each script started with start(script, args, cwd) in a folder of its own, training for 10M steps (with
+    --save-model where save says so), all at once: {script: (process, cwd)}. A run that hangs is killed at
+    180 s, failing the test, not CI; all of them at the end, so a failed one leaves none of the others training."""
     started = {}
-    for script in SCRIPTS:  # side by side
+    for script in SCRIPTS:
         cwd = tmp_path / script
         cwd.mkdir()
-        args = [*without(SHORT_RUNS[script], "--total-timesteps"), "--total-timesteps", "10000000", "--baseline-eval-episodes", "1"] + ["--save-model"] * SAVE[script]
-        process = subprocess.Popen([sys.executable, str(ROOT / f"{script}.py"), *args], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                   text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"}, preexec_fn=as_in_a_terminal)  # fmt: skip
-        started[script] = (process, cwd)
-    watchdogs = [threading.Timer(180, process.kill) for process, _ in started.values()]  # a run that hangs fails the test, not CI
+        args = [*without(SHORT_RUNS[script], "--total-timesteps"), "--total-timesteps", "10000000", "--baseline-eval-episodes", "1"] + ["--save-model"] * save[script]
+        started[script] = (start(script, args, cwd), cwd)
+    watchdogs = [threading.Timer(180, process.kill) for process, _ in started.values()]
     for watchdog in watchdogs:
         watchdog.start()
     try:
+        yield started
+    finally:
+        for watchdog in watchdogs:
+            watchdog.cancel()
+        for process, _ in started.values():
+            process.kill()
+            process.wait()
+            if process.stdout is not None:
+                process.stdout.close()
+
+
+def assert_saved_not_evaluated(script: str, cwd: Path, saved: bool = True) -> Path:
+    """The run in cwd logged two episodes or more and no evaluation, and saved a whole model (or none); its folder."""
+    (run_dir,) = (cwd / "runs").iterdir()
+    logged = scalars(run_dir)
+    assert "eval/episodic_return" not in logged
+    assert len(logged["charts/episodic_return"]) >= 2
+    model = run_dir / f"{script}.cleanrl_model"
+    if not saved:
+        assert not model.exists()
+    else:
+        (episode_return,) = load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)
+        assert np.isfinite(episode_return)
+    return run_dir
+
+
+def test_a_signalled_run_saves_its_model_without_evaluating_it(tmp_path):
+    def start(script: str, args: list[str], cwd: Path) -> subprocess.Popen:
+        return subprocess.Popen([sys.executable, str(ROOT / f"{script}.py"), *args], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"}, preexec_fn=as_in_a_terminal)  # fmt: skip
+
+    with side_by_side(tmp_path, start, SAVE) as started:
         for script, (process, cwd) in started.items():
             (trigger, times), lines, seen = TRIGGER[script], [], 0
             for line in process.stdout:
@@ -151,24 +188,9 @@ def test_a_signalled_run_saves_its_model_without_evaluating_it(tmp_path):
             step = int(stopped.group(1).replace(",", ""))
             assert step >= (400 if script.startswith(("sac", "jirl")) else 256) and step < 10_000_000
             assert "eval:" not in out and "Traceback" not in out, out
-            (run_dir,) = (cwd / "runs").iterdir()
-            logged = scalars(run_dir)
-            assert "eval/episodic_return" not in logged
-            assert len(logged["charts/episodic_return"]) >= 2
-            model = run_dir / f"{script}.cleanrl_model"
-            if not SAVE[script]:
-                assert not model.exists()
-                continue
-            assert f"model saved to runs/{run_dir.name}/{model.name}" in out
-            (episode_return,) = load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)  # the saved model is whole
-            assert np.isfinite(episode_return)
-    finally:  # a failed run leaves none of the others training on
-        for watchdog in watchdogs:
-            watchdog.cancel()
-        for process, _ in started.values():
-            process.kill()
-            process.wait()
-            process.stdout.close()
+            run_dir = assert_saved_not_evaluated(script, cwd, SAVE[script])
+            if SAVE[script]:
+                assert f"model saved to runs/{run_dir.name}/{script}.cleanrl_model" in out
 
 
 def on_a_terminal() -> None:
@@ -185,47 +207,33 @@ def test_a_hang_up_saves_the_model_and_the_lines_go_with_the_terminal(tmp_path):
     loop's next turn, exits 129 and keeps a whole model; a second SIGHUP changes nothing. SIGHUP used to
     end the run at once, without its model; caught alone, the run's next line ("training stopped", on
     stderr) raised OSError before the save."""
-    started = {}
-    for script in SCRIPTS:  # side by side, each on a terminal of its own
-        cwd = tmp_path / script
-        cwd.mkdir()
-        master, terminal = pty.openpty()
-        args = [*without(SHORT_RUNS[script], "--total-timesteps"), "--total-timesteps", "10000000", "--baseline-eval-episodes", "1", "--save-model"]
+    terminals = {}  # script: the terminal's other side, as the ssh server or terminal window holds it
+
+    def start(script: str, args: list[str], cwd: Path) -> subprocess.Popen:
+        terminals[script], terminal = pty.openpty()
         process = subprocess.Popen([sys.executable, str(ROOT / f"{script}.py"), *args], cwd=cwd, stdin=terminal, stdout=terminal, stderr=terminal,
                                    start_new_session=True, preexec_fn=on_a_terminal, env={**os.environ, "PYTHONUNBUFFERED": "1"})  # fmt: skip
         os.close(terminal)
-        started[script] = (process, master, cwd)
-    watchdogs = [threading.Timer(180, process.kill) for process, _, _ in started.values()]  # a run that hangs fails the test, not CI
-    for watchdog in watchdogs:
-        watchdog.start()
+        return process
+
     try:
-        for script, (process, master, cwd) in started.items():
-            (trigger, times), shown = TRIGGER[script], ""
-            while shown.count(f"\n{trigger}") < times:
-                try:
-                    shown += os.read(master, 4096).decode(errors="replace")
-                except OSError:  # the run ended: nothing is left on the terminal's other side
-                    break
-            assert shown.count(f"\n{trigger}") >= times, shown
-            os.close(master)  # the hang-up
-            time.sleep(0.3)
-            process.send_signal(signal.SIGHUP)  # and a second one, as a shell may pass it on, while the run saves its model
-            assert process.wait(timeout=60) == 128 + signal.SIGHUP, shown
-            (run_dir,) = (cwd / "runs").iterdir()
-            logged = scalars(run_dir)
-            assert "eval/episodic_return" not in logged and len(logged["charts/episodic_return"]) >= 2
-            (episode_return,) = load_script(script).evaluate(str(run_dir / f"{script}.cleanrl_model"), "Pendulum-v1", 1, 0)  # saved whole
-            assert np.isfinite(episode_return)
+        with side_by_side(tmp_path, start, dict.fromkeys(SCRIPTS, True)) as started:
+            for script, (process, cwd) in started.items():
+                (trigger, times), shown = TRIGGER[script], ""
+                while shown.count(f"\n{trigger}") < times:
+                    try:
+                        shown += os.read(terminals[script], 4096).decode(errors="replace")
+                    except OSError:  # the run ended: nothing is left on the terminal's other side
+                        break
+                assert shown.count(f"\n{trigger}") >= times, shown
+                os.close(terminals.pop(script))  # the hang-up
+                time.sleep(0.3)
+                process.send_signal(signal.SIGHUP)  # and a second one, as a shell may pass it on, while the run saves its model
+                assert process.wait(timeout=60) == 128 + signal.SIGHUP, shown
+                assert_saved_not_evaluated(script, cwd)
     finally:
-        for watchdog in watchdogs:
-            watchdog.cancel()
-        for process, master, _ in started.values():
-            process.kill()
-            process.wait()
-            try:
-                os.close(master)
-            except OSError:  # closed by the test
-                pass
+        for master in terminals.values():
+            os.close(master)
 
 
 def test_flaw_names_what_makes_an_envs_return_unusable(sac):
