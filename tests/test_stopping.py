@@ -14,6 +14,7 @@ import pty
 import re
 import resource
 import runpy
+import select
 import shutil
 import signal
 import subprocess
@@ -206,8 +207,9 @@ def test_a_hang_up_saves_the_model_and_the_lines_go_with_the_terminal(tmp_path):
     SIGHUP to the run in it, and every write to it fails from then on (EIO). Each script ends at the
     loop's next turn, exits 129 and keeps a whole model; a second SIGHUP changes nothing. SIGHUP used to
     end the run at once, without its model; caught alone, the run's next line ("training stopped", on
-    stderr) raised OSError before the save."""
-    terminals = {}  # script: the terminal's other side, as the ssh server or terminal window holds it
+    stderr) raised OSError before the save. Every terminal is read as its run writes to it: a run
+    blocked on a full terminal when it hangs up gets EIO from that write before SIGHUP (README)."""
+    terminals, shown = {}, dict.fromkeys(SCRIPTS, "")  # script: the terminal's other side, as the ssh server or terminal window holds it
 
     def start(script: str, args: list[str], cwd: Path) -> subprocess.Popen:
         terminals[script], terminal = pty.openpty()
@@ -216,20 +218,29 @@ def test_a_hang_up_saves_the_model_and_the_lines_go_with_the_terminal(tmp_path):
         os.close(terminal)
         return process
 
+    def read_the_terminals() -> None:
+        ready, _, _ = select.select(list(terminals.values()), [], [], 0.05)
+        for script, master in list(terminals.items()):
+            if master in ready:
+                try:
+                    shown[script] += os.read(master, 4096).decode(errors="replace")
+                except OSError:  # the run ended: nothing is left on the terminal's other side
+                    os.close(terminals.pop(script))
+
     try:
         with side_by_side(tmp_path, start, dict.fromkeys(SCRIPTS, True)) as started:
             for script, (process, cwd) in started.items():
-                (trigger, times), shown = TRIGGER[script], ""
-                while shown.count(f"\n{trigger}") < times:
-                    try:
-                        shown += os.read(terminals[script], 4096).decode(errors="replace")
-                    except OSError:  # the run ended: nothing is left on the terminal's other side
-                        break
-                assert shown.count(f"\n{trigger}") >= times, shown
+                trigger, times = TRIGGER[script]
+                while script in terminals and shown[script].count(f"\n{trigger}") < times:
+                    read_the_terminals()
+                assert script in terminals, shown[script]
                 os.close(terminals.pop(script))  # the hang-up
                 time.sleep(0.3)
                 process.send_signal(signal.SIGHUP)  # and a second one, as a shell may pass it on, while the run saves its model
-                assert process.wait(timeout=60) == 128 + signal.SIGHUP, shown
+                deadline = time.monotonic() + 60
+                while process.poll() is None and time.monotonic() < deadline:
+                    read_the_terminals()
+                assert process.returncode == 128 + signal.SIGHUP, shown[script]
                 assert_saved_not_evaluated(script, cwd)
     finally:
         for master in terminals.values():
