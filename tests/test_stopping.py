@@ -207,8 +207,8 @@ def test_a_hang_up_saves_the_model_and_the_lines_go_with_the_terminal(tmp_path):
     SIGHUP to the run in it, and every write to it fails from then on (EIO). Each script ends at the
     loop's next turn, exits 129 and keeps a whole model; a second SIGHUP changes nothing. SIGHUP used to
     end the run at once, without its model; caught alone, the run's next line ("training stopped", on
-    stderr) raised OSError before the save. Every terminal is read as its run writes to it: a run
-    blocked on a full terminal when it hangs up gets EIO from that write before SIGHUP (README)."""
+    stderr) raised OSError before the save. Every terminal is read as its run writes to it, as an ssh
+    server or terminal window does: left unread, a run once exited 1 instead, in CI (README)."""
     terminals, shown = {}, dict.fromkeys(SCRIPTS, "")  # script: the terminal's other side, as the ssh server or terminal window holds it
 
     def start(script: str, args: list[str], cwd: Path) -> subprocess.Popen:
