@@ -209,7 +209,8 @@ def test_a_hang_up_saves_the_model_and_the_lines_go_with_the_terminal(tmp_path):
     end the run at once, without its model; caught alone, the run's next line ("training stopped", on
     stderr) raised OSError before the save. Every terminal is read as its run writes to it, as an ssh
     server or terminal window does: left unread, a run once exited 1 instead, in CI (README)."""
-    terminals, shown = {}, dict.fromkeys(SCRIPTS, "")  # script: the terminal's other side, as the ssh server or terminal window holds it
+    terminals = {}  # script: the terminal's other side, as the ssh server or terminal window holds it
+    shown = dict.fromkeys(SCRIPTS, "")  # script: what its run has written there
 
     def start(script: str, args: list[str], cwd: Path) -> subprocess.Popen:
         terminals[script], terminal = pty.openpty()
