@@ -3,6 +3,7 @@
 # Run: python sac_continuous.py --env-id Pendulum-v1 --total-timesteps 20000
 from __future__ import annotations  # the JIRL script also runs on the car's Python 3.8 (deploy/)
 
+import errno
 import importlib
 import math
 import os
@@ -10,6 +11,7 @@ import random
 import re
 import reprlib
 import signal
+import stat
 import sys
 import threading
 import time
@@ -792,6 +794,54 @@ class CheckedWriter(SummaryWriter):
             self.other_threads_hook(exc)
 
 
+class OutputGuard:
+    """sys.stdout or sys.stderr whose reader may go away during a run of hours: a terminal that hung up
+    (an ssh session that dropped, for a run under disown or setsid, which gets no SIGHUP, or one whose
+    SIGHUP is still on its way) fails every write with EIO; a pipe whose reader ended (`| tee`, killed by
+    the hang-up) with EPIPE. Python would raise at the run's next print and lose the run with its model.
+    Here the stream's file descriptor is pointed at /dev/null instead and the run goes on: stopping is
+    SIGHUP's job (StopRequest). Other errors (a full disk) are raised as before."""
+
+    guarded = True  # marks a stream already guarded: a run in the same process (runpy) wraps it once
+
+    def __init__(self, stream) -> None:
+        self.stream = stream
+
+    @classmethod
+    def install(cls) -> None:
+        for name in ("stdout", "stderr"):
+            stream = getattr(sys, name)
+            try:
+                a_file = stat.S_ISREG(os.fstat(stream.fileno()).st_mode)  # a file has no reader to lose
+            except (AttributeError, OSError, ValueError):  # no file descriptor (a notebook's, pytest's capsys)
+                continue
+            if not a_file and not getattr(stream, "guarded", False):
+                setattr(sys, name, cls(stream))
+
+    def write(self, text: str) -> int:
+        try:
+            return self.stream.write(text)
+        except OSError as err:
+            self.lost(err)
+            return len(text)
+
+    def flush(self) -> None:
+        try:
+            self.stream.flush()
+        except OSError as err:
+            self.lost(err)
+
+    def lost(self, err: OSError) -> None:
+        if err.errno not in (errno.EIO, errno.EPIPE):
+            raise err
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, self.stream.fileno())  # what the stream still holds, and all it is given later, goes there
+        os.close(devnull)
+
+    def __getattr__(self, name: str):  # fileno, isatty, encoding, buffer: the stream's own
+        return getattr(self.stream, name)
+
+
 class StopRequest:
     """Why the training ends before its last step: Ctrl-C (SIGINT), SIGTERM (`kill`, `timeout`, a
     cluster's time limit) or SIGHUP (the ssh session or terminal it runs in went away), caught so that
@@ -807,7 +857,6 @@ class StopRequest:
         self.status = 0  # the run's exit status then
         self.previous: dict = {}
         self.loop_code = sys._getframe(1).f_code  # the code that made this request and runs the training loop
-        self.terminals = [fd for fd in (1, 2) if os.isatty(fd)]  # stdout and stderr on a terminal, which a hang-up takes away
         if threading.current_thread() is not threading.main_thread():  # only the main thread may handle signals
             return
         for sig in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)):  # no SIGHUP on Windows
@@ -823,11 +872,7 @@ class StopRequest:
             else:
                 signal.raise_signal(signum)  # the default action, back in place
             return
-        if signum == getattr(signal, "SIGHUP", None):  # writing to the hung-up terminal would fail (EIO) before the model is saved
-            devnull = os.open(os.devnull, os.O_WRONLY)
-            for fd in self.terminals:
-                os.dup2(devnull, fd)
-            os.close(devnull)
+        if signum == getattr(signal, "SIGHUP", None):  # the hung-up terminal's writes fail from here on: OutputGuard
             self.previous[signum] = signal.SIG_IGN  # from here on: a second hang-up (a shell passing it on) is no request to stop at once
         self.end(f"{signal.Signals(signum).name} received", 128 + signum)  # the status a shell gives a process the signal ended
 
@@ -849,6 +894,7 @@ class StopRequest:
 
 if __name__ == "__main__":
     args = tyro.cli(Args)
+    OutputGuard.install()  # a run whose terminal or pipe is gone trains on, instead of ending at its next print
     sys.path.append(os.getcwd())  # `module:...` in --env-id and --baseline may name a module in the current directory; last, so it shadows nothing installed
     try:  # before make_env, whose video folder shares the name
         run_name = claim_run_dir(f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}")

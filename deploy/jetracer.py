@@ -958,6 +958,7 @@ def main(argv: Optional[List[str]] = None) -> None:
     import tyro
 
     args = tyro.extras.subcommand_cli_from_dict({"run": Run, "baseline": Baseline, "train": Train}, prog="python -m deploy.jetracer", args=argv)
+    jirl.OutputGuard.install()  # an ssh session that drops leaves the car's lines nowhere to go: they go to /dev/null, not up as EIO
     {Run: run, Baseline: baseline, Train: train}[type(args)](args)
 
 

@@ -4,7 +4,9 @@ import copy
 import errno
 import math
 import os
+import pty
 import re
+import select
 import signal
 import subprocess
 import sys
@@ -21,6 +23,7 @@ import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from conftest import CAR_TRAIN_FAST as FAST, ROOT, fill_the_disk_for, overflow_the_actor
+from test_stopping import on_a_terminal
 
 jetracer = pytest.importorskip("deploy.jetracer")
 from envs.car_interface import ActionMapping  # noqa: E402
@@ -1195,6 +1198,28 @@ def test_a_hang_up_stops_training_and_saves_the_state_where_it_stopped(tmp_path)
     steps = int(stdout.split("train: step ")[1].split(",")[0])
     assert 0 < steps < 3000
     assert torch.load(state, weights_only=True)["counters"]["step"] == steps  # saved at the stop, not at the last pause
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="no hang-up on Windows")
+def test_a_terminal_that_hangs_up_ends_training_with_its_state_saved_and_status_0(tmp_path):
+    """The same on a real terminal: its last lines ("train: step ...") find it gone (EIO) and go to
+    /dev/null. They used to raise there, after the save: exit status 1 and a traceback nobody saw."""
+    state = tmp_path / "t.pt"
+    terminal, car_side = pty.openpty()
+    process = subprocess.Popen([sys.executable, "-m", "deploy.jetracer", "train", "--total-steps", "3000", "--train-every", "200", "--gradient-steps", "2",
+                                "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST], cwd=ROOT, stdin=car_side, stdout=car_side, stderr=car_side,
+                               start_new_session=True, preexec_fn=on_a_terminal)  # fmt: skip
+    os.close(car_side)
+    shown, deadline = b"", time.monotonic() + 60
+    try:
+        while time.monotonic() < deadline and not list(tmp_path.glob("train__*")):  # read as a terminal does, until the session is up
+            if select.select([terminal], [], [], 0.1)[0]:
+                shown += os.read(terminal, 4096)
+        time.sleep(1.0)
+    finally:
+        os.close(terminal)  # the hang-up
+    assert process.wait(timeout=60) == 0, shown.decode(errors="replace")
+    assert 0 < torch.load(state, weights_only=True)["counters"]["step"] < 3000
 
 
 def test_a_run_started_with_nohup_drives_on_after_a_hang_up(tmp_path):

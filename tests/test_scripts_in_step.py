@@ -26,7 +26,7 @@ SAC, JIRL = top_level("sac_continuous"), top_level("jirl_sac_continuous")
 JIRL_CHANGES = {"Args", "ReplayBuffer"}  # the two shared definitions JIRL extends, checked below
 SHARED_BY_ALL = [  # the baseline, regret, checkpoint and early-stop code every script repeats
     "EVAL_SEED_OFFSET", "EPISODE_LIMIT", "claim_run_dir", "load_baseline", "check_baseline_action", "baseline_rollout", "paired_regret", "unpaired_regret",
-    "write_checkpoint", "load_checkpoint", "flaw", "StopRequest", "ask_baseline", "kind", "raised", "CheckedEnv", "CheckedWriter", "start_tracking", "VideoTracker", "finish_tracking",
+    "write_checkpoint", "load_checkpoint", "flaw", "StopRequest", "ask_baseline", "kind", "raised", "CheckedEnv", "CheckedWriter", "OutputGuard", "start_tracking", "VideoTracker", "finish_tracking",
 ]
 
 

@@ -9,6 +9,7 @@ broke keeps its model."""
 import contextlib
 import errno
 import fcntl
+import io
 import os
 import pty
 import re
@@ -207,8 +208,9 @@ def test_a_hang_up_saves_the_model_and_the_lines_go_with_the_terminal(tmp_path):
     SIGHUP to the run in it, and every write to it fails from then on (EIO). Each script ends at the
     loop's next turn, exits 129 and keeps a whole model; a second SIGHUP changes nothing. SIGHUP used to
     end the run at once, without its model; caught alone, the run's next line ("training stopped", on
-    stderr) raised OSError before the save. Every terminal is read as its run writes to it, as an ssh
-    server or terminal window does: left unread, a run once exited 1 instead, in CI (README)."""
+    stderr) raised OSError before the save; redirected by the SIGHUP handler alone, a run exited 1 once
+    in CI, its EIO come before its SIGHUP (OutputGuard now takes that write). Every terminal is read as
+    its run writes to it, as an ssh server or terminal window does."""
     terminals = {}  # script: the terminal's other side, as the ssh server or terminal window holds it
     shown = dict.fromkeys(SCRIPTS, "")  # script: what its run has written there
 
@@ -246,6 +248,121 @@ def test_a_hang_up_saves_the_model_and_the_lines_go_with_the_terminal(tmp_path):
     finally:
         for master in terminals.values():
             os.close(master)
+
+
+def points_at_dev_null(file: int | str) -> bool:
+    """Whether a file descriptor of ours, or a path such as /proc/PID/fd/1, is /dev/null."""
+    try:
+        return os.path.samestat(os.stat(file), os.stat(os.devnull))
+    except FileNotFoundError:  # that process ended
+        return False
+
+
+@pytest.mark.parametrize("reader", ["terminal", "pipe"])
+def test_output_guard_sends_what_has_no_reader_to_dev_null(sac, reader):
+    """Buffered as Python buffers stdout there: by line on a terminal, where the write meets the dead
+    reader; by block on a pipe, where the flush does."""
+    read_end, write_end = pty.openpty() if reader == "terminal" else os.pipe()
+    stream = os.fdopen(write_end, "w", buffering=1 if reader == "terminal" else -1)
+    guard = sac.OutputGuard(stream)
+    assert guard.write("read\n") == 5
+    guard.flush()
+    assert os.read(read_end, 100).startswith(b"read")
+    os.close(read_end)  # the terminal hangs up, or the pipe's reader ends
+    with pytest.raises(OSError) as raised:
+        os.write(write_end, b"x")
+    assert raised.value.errno == (errno.EIO if reader == "terminal" else errno.EPIPE)
+    assert not points_at_dev_null(write_end)
+    assert guard.write("lost\n") == 5
+    assert points_at_dev_null(write_end) == (reader == "terminal")
+    guard.flush()
+    assert points_at_dev_null(write_end)
+    guard.write("and more\n")
+    guard.flush()
+    assert guard.fileno() == write_end and guard.encoding == stream.encoding  # the stream's own
+    stream.close()
+
+
+def test_output_guard_raises_any_other_error(sac):
+    class FullDisk(io.StringIO):
+        def write(self, text: str) -> int:
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def flush(self) -> None:
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    guard = sac.OutputGuard(FullDisk())
+    with pytest.raises(OSError, match="No space left on device"):
+        guard.write("x")
+    with pytest.raises(OSError, match="No space left on device"):
+        guard.flush()
+
+
+def test_output_guard_wraps_each_stream_with_a_reader_once(sac, tmp_path, monkeypatch):
+    read_end, write_end = os.pipe()
+    with os.fdopen(write_end, "w") as pipe, open(tmp_path / "log", "w") as file:
+        monkeypatch.setattr(sys, "stdout", pipe)
+        monkeypatch.setattr(sys, "stderr", file)
+        sac.OutputGuard.install()
+        assert isinstance(sys.stdout, sac.OutputGuard) and sys.stdout.stream is pipe
+        assert sys.stderr is file  # a file has no reader to lose
+        guarded = sys.stdout
+        sac.OutputGuard.install()  # a second run in this process
+        load_script("ppo_il").OutputGuard.install()  # or another script's: another copy of the class
+        assert sys.stdout is guarded and sys.stderr is file
+        monkeypatch.setattr(sys, "stdout", io.StringIO())  # no file descriptor: a notebook's stream, or capsys
+        sac.OutputGuard.install()
+        assert isinstance(sys.stdout, io.StringIO)
+    os.close(read_end)
+
+
+READER = {"sac_continuous": "terminal", "jirl_sac_continuous": "pipe", "ppo_il": "pipe", "trpo_il": "terminal"}
+
+
+@pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="reads where a run's stdout points from /proc")
+def test_a_run_whose_output_lost_its_reader_trains_on(tmp_path):
+    """A run under disown or setsid whose ssh session dropped gets no SIGHUP, but its terminal fails every
+    write (EIO); a run piped to `tee`, whose tee ended, fails with EPIPE. Each used to end at its next print,
+    with exit status 1 and no model. Now its stdout and stderr go to /dev/null and it trains on, until
+    SIGTERM ends it with its model (its "training stopped" line, on stderr, also reaches the dead reader)."""
+    readers = {}  # script: the reader's end of its terminal or pipe
+
+    def start(script: str, args: list[str], cwd: Path) -> subprocess.Popen:
+        if READER[script] == "terminal":  # in a session of its own without a controlling terminal: no SIGHUP reaches it
+            readers[script], terminal = pty.openpty()
+            process = subprocess.Popen([sys.executable, str(ROOT / f"{script}.py"), *args], cwd=cwd, stdin=subprocess.DEVNULL, stdout=terminal,
+                                       stderr=terminal, start_new_session=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})  # fmt: skip
+            os.close(terminal)
+        else:
+            process = subprocess.Popen([sys.executable, str(ROOT / f"{script}.py"), *args], cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                       stderr=subprocess.STDOUT, start_new_session=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})  # fmt: skip
+            readers[script] = process.stdout.fileno()  # read below without the file's buffer, closed with the file
+        return process
+
+    try:
+        with side_by_side(tmp_path, start, dict.fromkeys(SCRIPTS, True)) as started:
+            for script, (process, cwd) in started.items():
+                trigger, times = TRIGGER[script]
+                shown = ""
+                while shown.count(f"\n{trigger}") < times and process.poll() is None:
+                    if select.select([readers[script]], [], [], 0.05)[0]:
+                        shown += os.read(readers[script], 4096).decode(errors="replace")
+                if READER[script] == "terminal":  # the terminal hangs up, or tee ends
+                    os.close(readers.pop(script))
+                else:
+                    process.stdout.close()
+                stdout, deadline = f"/proc/{process.pid}/fd/1", time.monotonic() + 120
+                while not points_at_dev_null(stdout) and process.poll() is None and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                assert process.poll() is None, f"{script} ended at its first print without a reader, status {process.returncode}: {shown}"
+                assert points_at_dev_null(stdout), shown
+                process.send_signal(signal.SIGTERM)
+                assert process.wait(timeout=60) == 128 + signal.SIGTERM
+                assert_saved_not_evaluated(script, cwd)
+    finally:
+        for script, reader in readers.items():
+            if READER[script] == "terminal":
+                os.close(reader)
 
 
 def test_flaw_names_what_makes_an_envs_return_unusable(sac):
