@@ -1186,12 +1186,14 @@ def test_sigterm_stops_a_drive_cleanly(tmp_path):
     assert 0 < steps < 2000  # stopped early, and still reported
 
 
+HUNG_UP_TRAINING = ["train", "--total-steps", "3000", "--train-every", "200", "--gradient-steps", "2", *FAST]  # hung up long before its end
+
+
 def test_a_hang_up_stops_training_and_saves_the_state_where_it_stopped(tmp_path):
     """A dropped ssh session sends SIGHUP: the car is e-stopped and the state saved, as on SIGTERM; it
     used to end the process at once, with the steps since the last pause lost."""
     state = tmp_path / "t.pt"
-    process = started_session(["train", "--total-steps", "3000", "--train-every", "200", "--gradient-steps", "2",
-                               "--checkpoint", str(state), *FAST], tmp_path, signal.SIG_DFL)  # fmt: skip
+    process = started_session([*HUNG_UP_TRAINING, "--checkpoint", str(state)], tmp_path, signal.SIG_DFL)
     process.send_signal(signal.SIGHUP)
     stdout, stderr = process.communicate(timeout=60)
     assert process.returncode == 0, stderr
@@ -1206,9 +1208,8 @@ def test_a_terminal_that_hangs_up_ends_training_with_its_state_saved_and_status_
     /dev/null. They used to raise there, after the save: exit status 1 and a traceback nobody saw."""
     state = tmp_path / "t.pt"
     terminal, car_side = pty.openpty()
-    process = subprocess.Popen([sys.executable, "-m", "deploy.jetracer", "train", "--total-steps", "3000", "--train-every", "200", "--gradient-steps", "2",
-                                "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST], cwd=ROOT, stdin=car_side, stdout=car_side, stderr=car_side,
-                               start_new_session=True, preexec_fn=on_a_terminal)  # fmt: skip
+    process = subprocess.Popen([sys.executable, "-m", "deploy.jetracer", *HUNG_UP_TRAINING, "--checkpoint", str(state), "--log-dir", str(tmp_path)], cwd=ROOT,
+                               stdin=car_side, stdout=car_side, stderr=car_side, start_new_session=True, preexec_fn=on_a_terminal)  # fmt: skip
     os.close(car_side)
     shown, deadline = b"", time.monotonic() + 60
     try:

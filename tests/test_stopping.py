@@ -250,6 +250,11 @@ def test_a_hang_up_saves_the_model_and_the_lines_go_with_the_terminal(tmp_path):
             os.close(master)
 
 
+def reader_and_writer(reader: str) -> tuple[int, int]:
+    """The two ends of a new terminal (its other side, as an ssh server holds it, and the run's side) or pipe."""
+    return pty.openpty() if reader == "terminal" else os.pipe()
+
+
 def points_at_dev_null(file: int | str) -> bool:
     """Whether a file descriptor of ours, or a path such as /proc/PID/fd/1, is /dev/null."""
     try:
@@ -262,7 +267,7 @@ def points_at_dev_null(file: int | str) -> bool:
 def test_output_guard_sends_what_has_no_reader_to_dev_null(sac, reader):
     """Buffered as Python buffers stdout there: by line on a terminal, where the write meets the dead
     reader; by block on a pipe, where the flush does."""
-    read_end, write_end = pty.openpty() if reader == "terminal" else os.pipe()
+    read_end, write_end = reader_and_writer(reader)
     stream = os.fdopen(write_end, "w", buffering=1 if reader == "terminal" else -1)
     guard = sac.OutputGuard(stream)
     assert guard.write("read\n") == 5
@@ -328,15 +333,11 @@ def test_a_run_whose_output_lost_its_reader_trains_on(tmp_path):
     readers = {}  # script: the reader's end of its terminal or pipe
 
     def start(script: str, args: list[str], cwd: Path) -> subprocess.Popen:
-        if READER[script] == "terminal":  # in a session of its own without a controlling terminal: no SIGHUP reaches it
-            readers[script], terminal = pty.openpty()
-            process = subprocess.Popen([sys.executable, str(ROOT / f"{script}.py"), *args], cwd=cwd, stdin=subprocess.DEVNULL, stdout=terminal,
-                                       stderr=terminal, start_new_session=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})  # fmt: skip
-            os.close(terminal)
-        else:
-            process = subprocess.Popen([sys.executable, str(ROOT / f"{script}.py"), *args], cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                       stderr=subprocess.STDOUT, start_new_session=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})  # fmt: skip
-            readers[script] = process.stdout.fileno()  # read below without the file's buffer, closed with the file
+        readers[script], output = reader_and_writer(READER[script])
+        # in a session of its own without a controlling terminal: no SIGHUP reaches it
+        process = subprocess.Popen([sys.executable, str(ROOT / f"{script}.py"), *args], cwd=cwd, stdin=subprocess.DEVNULL, stdout=output, stderr=output,
+                                   start_new_session=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})  # fmt: skip
+        os.close(output)
         return process
 
     try:
@@ -347,10 +348,7 @@ def test_a_run_whose_output_lost_its_reader_trains_on(tmp_path):
                 while shown.count(f"\n{trigger}") < times and process.poll() is None:
                     if select.select([readers[script]], [], [], 0.05)[0]:
                         shown += os.read(readers[script], 4096).decode(errors="replace")
-                if READER[script] == "terminal":  # the terminal hangs up, or tee ends
-                    os.close(readers.pop(script))
-                else:
-                    process.stdout.close()
+                os.close(readers.pop(script))  # the terminal hangs up, or tee ends
                 stdout, deadline = f"/proc/{process.pid}/fd/1", time.monotonic() + 120
                 while not points_at_dev_null(stdout) and process.poll() is None and time.monotonic() < deadline:
                     time.sleep(0.05)
@@ -360,9 +358,8 @@ def test_a_run_whose_output_lost_its_reader_trains_on(tmp_path):
                 assert process.wait(timeout=60) == 128 + signal.SIGTERM
                 assert_saved_not_evaluated(script, cwd)
     finally:
-        for script, reader in readers.items():
-            if READER[script] == "terminal":
-                os.close(reader)
+        for reader in readers.values():
+            os.close(reader)
 
 
 def test_flaw_names_what_makes_an_envs_return_unusable(sac):
