@@ -208,9 +208,9 @@ def test_a_hang_up_saves_the_model_and_the_lines_go_with_the_terminal(tmp_path):
     SIGHUP to the run in it, and every write to it fails from then on (EIO). Each script ends at the
     loop's next turn, exits 129 and keeps a whole model; a second SIGHUP changes nothing. SIGHUP used to
     end the run at once, without its model; caught alone, the run's next line ("training stopped", on
-    stderr) raised OSError before the save; redirected by the SIGHUP handler alone, a run exited 1 once
-    in CI, its EIO come before its SIGHUP (OutputGuard now takes that write). Every terminal is read as
-    its run writes to it, as an ssh server or terminal window does."""
+    stderr) raised OSError before the save. With only the SIGHUP handler redirecting, a run exited 1 once
+    in CI, most likely on an EIO that came before its SIGHUP; OutputGuard now takes such a write. Every
+    terminal is read as its run writes to it, as an ssh server or terminal window does."""
     terminals = {}  # script: the terminal's other side, as the ssh server or terminal window holds it
     shown = dict.fromkeys(SCRIPTS, "")  # script: what its run has written there
 
