@@ -825,6 +825,10 @@ class OutputGuard:
             self.lost(err)
             return len(text)
 
+    def writelines(self, lines) -> None:  # the stream's own would call its own write, not this one
+        for line in lines:
+            self.write(line)
+
     def flush(self) -> None:
         try:
             self.stream.flush()

@@ -288,6 +288,15 @@ def test_output_guard_sends_what_has_no_reader_to_dev_null(sac, reader):
     stream.close()
 
 
+@pytest.mark.parametrize("reader", ["terminal", "pipe"])
+def test_output_guard_writes_lines_through_itself(sac, reader):
+    read_end, write_end = reader_and_writer(reader)
+    os.close(read_end)
+    with os.fdopen(write_end, "w", buffering=1) as stream:
+        sac.OutputGuard(stream).writelines(["lost\n", "and more\n"])
+        assert points_at_dev_null(write_end)
+
+
 def test_output_guard_raises_any_other_error(sac):
     class FullDisk(io.StringIO):
         def write(self, text: str) -> int:
