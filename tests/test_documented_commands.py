@@ -1,0 +1,103 @@
+"""Every command the documentation prints is one its program accepts. A user copies them from README.md,
+BENCHMARKS.md, docs/ and the benchmarks' docstrings; an option renamed or a rule tightened in code, and
+not in the text, would fail there, after the setup, for the first user who tries. Each command is parsed
+by its own program (tests/parse_only.py) and stops there: nothing trains."""
+
+import ast
+import itertools
+import json
+import re
+import shlex
+import subprocess
+import sys
+from collections.abc import Sequence
+
+from conftest import ROOT
+
+DOCUMENTS = ["README.md", "BENCHMARKS.md", *sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "docs").rglob("*.md"))]
+PROGRAMS = sorted(p.relative_to(ROOT).as_posix() for folder in (".", "benchmarks", "envs", "deploy") for p in (ROOT / folder).glob("*.py"))
+NOT_OURS = {"pytest", "venv", "pip"}  # `python -m` of these is the setup's or the tests' command, run by .ci/run
+PLACEHOLDERS = {"ENV": "Pendulum-v1", "N": "1000", "<checkpoint>": "CHECKPOINT"}  # words the text leaves to the reader
+PYTHON = re.compile(r"(?:\.venv/bin/)?python(?:3[.\d]*)? ")
+
+
+def markdown_commands(text: str) -> list[str]:
+    """`python ...` lines of the shell blocks (`\\` continued, `&&` chained) and inline code spans."""
+    found = []
+    fenced = re.compile(r"^```(\w*)\n(.*?)^```", re.S | re.M)
+    for language, body in fenced.findall(text):
+        if language in ("", "bash", "sh", "console"):
+            for line in body.replace("\\\n", " ").splitlines():
+                found += [part.strip() for part in line.split("&&") if PYTHON.match(part.strip())]
+    for span in re.findall(r"`([^`]+)`", fenced.sub("", text)):
+        span = " ".join(span.split())  # a span may wrap across lines
+        if PYTHON.match(span):
+            found.append(span)
+    return found
+
+
+def docstring_commands(source: str) -> list[str]:
+    """`python ...` lines of a module's docstring, its usage examples (`\\` continued)."""
+    docstring = ast.get_docstring(ast.parse(source)) or ""
+    return [line.strip() for line in docstring.replace("\\\n", " ").splitlines() if PYTHON.match(line.strip())]
+
+
+def expand(word: str) -> list[str]:
+    """A shell's brace expansion: `{jirl,sac}/x` is two words."""
+    braces = re.search(r"\{([^{}]*,[^{}]*)\}", word)
+    if braces is None:
+        return [word]
+    return [w for choice in braces.group(1).split(",") for w in expand(word[: braces.start()] + choice + word[braces.end() :])]
+
+
+def documented() -> dict[tuple[str, ...], list[str]]:
+    """Each documented command's arguments after `python`, as a shell would pass them, to where it is printed."""
+    commands: dict[tuple[str, ...], list[str]] = {}
+    texts = [(name, markdown_commands((ROOT / name).read_text())) for name in DOCUMENTS]
+    texts += [(name, docstring_commands((ROOT / name).read_text())) for name in PROGRAMS]
+    for where, lines in texts:
+        for line in lines:
+            words = [PLACEHOLDERS.get(w, w) for w in shlex.split(line, comments=True)[1:]]
+            if words[:1] == ["-c"] or words[:1] == ["-m"] and (len(words) < 2 or words[1] in NOT_OURS):
+                continue  # `python -c` code, a module named in passing
+            for argv in itertools.product(*map(expand, words)):
+                commands.setdefault(argv, []).append(where)
+    return commands
+
+
+def parse(commands: Sequence[Sequence[str]]) -> list[str | None]:
+    """What each command's program said of its arguments (None: accepted), in turn."""
+    lines = "".join(json.dumps(argv) + "\n" for argv in commands)
+    done = subprocess.run([sys.executable, str(ROOT / "tests" / "parse_only.py")], input=lines, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout)
+
+
+def test_every_documented_command_is_accepted_by_its_program():
+    commands = documented()
+    programs = {argv[argv[0] == "-m"] for argv in commands}
+    # the extraction itself: the README's two commands' script, the car, and the benchmarks are all found
+    assert {"jirl_sac_continuous.py", "sac_continuous.py", "deploy.jetracer", "envs.baselines", "benchmarks/learning.py", "benchmarks/reproduce.py"} <= programs
+    assert len(commands) >= 60, sorted(commands)
+    refused = {argv: said for argv, said in zip(commands, parse(list(commands))) if said is not None}
+    assert refused == {}, "\n\n".join(f"python {shlex.join(argv)}\n(in {', '.join(commands[argv])}):\n{said}" for argv, said in refused.items())
+
+
+def test_a_command_its_program_would_refuse_is_refused_with_its_own_words():
+    """The check is no weaker than the programs: a wrong option, a value out of range, a bad value after
+    learning.py's `--` (for the script it runs), and a module that does not parse are each refused."""
+    bad = [
+        ["sac_continuous.py", "--no-such-option", "1"],
+        ["jirl_sac_continuous.py", "--gate-c", "-1"],
+        ["benchmarks/learning.py", "--script", "jirl_sac_continuous.py", "--", "--penalty-sigma2", "0"],
+        ["-m", "deploy.jetracer", "train", "--total-steps", "many"],
+        ["benchmarks/learning.py", "--seedz", "1"],
+        ["-m", "envs.track"],
+    ]
+    good = [["sac_continuous.py", "--help"], ["benchmarks/learning.py", "--script", "jirl_sac_continuous.py", "--", "--penalty-sigma2", "0.5"]]
+    said = parse(bad + good)
+    assert all(said[: len(bad)]), said
+    assert "--no-such-option" in said[0] and "--gate-c" in said[1] and "--penalty-sigma2" in said[2] and "--total-steps" in said[3]
+    assert "unrecognized arguments: --seedz" in said[4]
+    assert said[5] == "the program ended without parsing its arguments"
+    assert said[len(bad) :] == [None, None]
