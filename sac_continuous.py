@@ -5,6 +5,7 @@ from __future__ import annotations  # the JIRL script also runs on the car's Pyt
 
 import errno
 import importlib
+import io
 import math
 import os
 import random
@@ -799,31 +800,40 @@ class OutputGuard:
     (an ssh session that dropped, for a run under disown or setsid, which gets no SIGHUP, or one whose
     SIGHUP is still on its way) fails every write with EIO; a pipe whose reader ended (`| tee`, killed by
     the hang-up) with EPIPE. Python would raise at the run's next print and lose the run with its model.
-    Here the stream's file descriptor is pointed at /dev/null instead and the run goes on: stopping is
-    SIGHUP's job (StopRequest). Other errors (a full disk) are raised as before."""
+    Here the stream's file descriptor is pointed at {folder}/stdout.log or stderr.log instead, as nohup
+    would, after a line saying when and why (at /dev/null where there is no folder, or it cannot be
+    written), and the run goes on: stopping is SIGHUP's job (StopRequest). Other errors (a full disk)
+    are raised as before."""
 
     guarded = True  # marks a stream already guarded: a run in the same process (runpy) wraps it once
 
-    def __init__(self, stream) -> None:
-        self.stream = stream
+    def __init__(self, stream, name: str = "output", folder: Optional[str] = None) -> None:
+        self.stream, self.name, self.folder = stream, name, folder
 
     @classmethod
-    def install(cls) -> None:
+    def install(cls, folder: Optional[str] = None) -> None:
+        """Guard sys.stdout and sys.stderr, keeping what they print once their reader has gone in folder."""
+        folder = folder and os.path.abspath(folder)
         for name in ("stdout", "stderr"):
             stream = getattr(sys, name)
+            if getattr(stream, "guarded", False):  # by an earlier run in this process, maybe another script's copy
+                stream.folder = folder
+                continue
             try:
                 a_file = stat.S_ISREG(os.fstat(stream.fileno()).st_mode)  # a file has no reader to lose
             except (AttributeError, OSError, ValueError):  # no file descriptor (a notebook's, pytest's capsys)
                 continue
-            if not a_file and not getattr(stream, "guarded", False):
-                setattr(sys, name, cls(stream))
+            if not a_file:
+                setattr(sys, name, cls(stream, name, folder))
 
     def write(self, text: str) -> int:
         try:
             return self.stream.write(text)
         except OSError as err:
             self.lost(err)
-            return len(text)
+            if isinstance(getattr(self.stream, "buffer", None), io.RawIOBase):  # unbuffered (python -u): the text was dropped
+                return self.stream.write(text)
+            return len(text)  # buffered: the text waits in the buffer for the descriptor's new place
 
     def writelines(self, lines) -> None:  # the stream's own would call its own write, not this one
         for line in lines:
@@ -838,9 +848,20 @@ class OutputGuard:
     def lost(self, err: OSError) -> None:
         if err.errno not in (errno.EIO, errno.EPIPE):
             raise err
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, self.stream.fileno())  # what the stream still holds, and all it is given later, goes there
-        os.close(devnull)
+        kept = None
+        if self.folder:
+            try:
+                kept = os.open(os.path.join(self.folder, f"{self.name}.log"), os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+                os.write(kept, f"[{time.strftime('%Y-%m-%d %H:%M:%S')}: the {'terminal' if err.errno == errno.EIO else 'pipe'} of {self.name} went away"
+                               f" ({errno.errorcode[err.errno]}); what the run printed from then on follows]\n".encode())
+            except OSError:  # the folder removed, a full disk: the output has nowhere to go
+                if kept is not None:
+                    os.close(kept)
+                kept = None
+        if kept is None:
+            kept = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(kept, self.stream.fileno())  # what the stream still holds, and all it is given later, goes there
+        os.close(kept)
 
     def __getattr__(self, name: str):  # fileno, isatty, encoding, buffer: the stream's own
         return getattr(self.stream, name)
@@ -898,12 +919,12 @@ class StopRequest:
 
 if __name__ == "__main__":
     args = tyro.cli(Args)
-    OutputGuard.install()  # a run whose terminal or pipe is gone trains on, instead of ending at its next print
     sys.path.append(os.getcwd())  # `module:...` in --env-id and --baseline may name a module in the current directory; last, so it shadows nothing installed
     try:  # before make_env, whose video folder shares the name
         run_name = claim_run_dir(f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}")
     except OSError as err:  # a file named runs in the way, no permission, a full disk
         raise SystemExit(f"{args.exp_name}: error: cannot make the run's folder in runs/: {err}")
+    OutputGuard.install(f"runs/{run_name}")  # a run whose terminal or pipe is gone trains on, keeping its output there
 
     # TRY NOT TO MODIFY: seeding
     random.seed(args.seed)

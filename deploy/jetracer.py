@@ -290,6 +290,7 @@ class CarSession:
         if self.writer.failure:  # a full disk
             self.close()
             raise SystemExit(f"{mode}: error: {self.writer.failure}")
+        jirl.OutputGuard.install(self.writer.get_logdir())  # what an ssh session that drops no longer shows is kept beside the logs
 
     def _on_signal(self, *_) -> None:
         self.stop_requested = True
@@ -958,7 +959,7 @@ def main(argv: Optional[List[str]] = None) -> None:
     import tyro
 
     args = tyro.extras.subcommand_cli_from_dict({"run": Run, "baseline": Baseline, "train": Train}, prog="python -m deploy.jetracer", args=argv)
-    jirl.OutputGuard.install()  # an ssh session that drops leaves the car's lines nowhere to go: they go to /dev/null, not up as EIO
+    jirl.OutputGuard.install()  # an ssh session that drops leaves the car's lines nowhere to go: not up as EIO (the session names its folder for them)
     {Run: run, Baseline: baseline, Train: train}[type(args)](args)
 
 

@@ -23,7 +23,7 @@ import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from conftest import CAR_TRAIN_FAST as FAST, ROOT, fill_the_disk_for, overflow_the_actor
-from test_stopping import on_a_terminal
+from test_stopping import LOST_HEADER, on_a_terminal
 
 jetracer = pytest.importorskip("deploy.jetracer")
 from envs.car_interface import ActionMapping  # noqa: E402
@@ -1204,8 +1204,9 @@ def test_a_hang_up_stops_training_and_saves_the_state_where_it_stopped(tmp_path)
 
 @pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="no hang-up on Windows")
 def test_a_terminal_that_hangs_up_ends_training_with_its_state_saved_and_status_0(tmp_path):
-    """The same on a real terminal: its last lines ("train: step ...") find it gone (EIO) and go to
-    /dev/null. They used to raise there, after the save: exit status 1 and a traceback nobody saw."""
+    """The same on a real terminal: its last lines ("train: step ...") find it gone (EIO) and go on in
+    the session's log folder, in stdout.log. They used to raise there, after the save: exit status 1
+    and a traceback nobody saw."""
     state = tmp_path / "t.pt"
     terminal, car_side = pty.openpty()
     process = subprocess.Popen([sys.executable, "-m", "deploy.jetracer", *HUNG_UP_TRAINING, "--checkpoint", str(state), "--log-dir", str(tmp_path)], cwd=ROOT,
@@ -1220,7 +1221,12 @@ def test_a_terminal_that_hangs_up_ends_training_with_its_state_saved_and_status_
     finally:
         os.close(terminal)  # the hang-up
     assert process.wait(timeout=60) == 0, shown.decode(errors="replace")
-    assert 0 < torch.load(state, weights_only=True)["counters"]["step"] < 3000
+    steps = torch.load(state, weights_only=True)["counters"]["step"]
+    assert 0 < steps < 3000
+    (session,) = tmp_path.glob("train__*")
+    kept = (session / "stdout.log").read_text()
+    assert re.match(LOST_HEADER.replace("(terminal|pipe)", "terminal").replace("(stdout|stderr)", "stdout"), kept)
+    assert f"\ntrain: step {steps}, " in kept
 
 
 def test_a_run_started_with_nohup_drives_on_after_a_hang_up(tmp_path):

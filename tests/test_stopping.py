@@ -195,6 +195,10 @@ def test_a_signalled_run_saves_its_model_without_evaluating_it(tmp_path):
                 assert f"model saved to runs/{run_dir.name}/{script}.cleanrl_model" in out
 
 
+# the line OutputGuard opens a run's stdout.log or stderr.log with, once the run's terminal or pipe has gone
+LOST_HEADER = r"\[\d{4}-\d\d-\d\d \d\d:\d\d:\d\d: the (terminal|pipe) of (stdout|stderr) went away \((EIO|EPIPE)\); what the run printed from then on follows\]\n"
+
+
 def on_a_terminal() -> None:
     """In the child, started in a session of its own: the pty on its stdin becomes its controlling
     terminal, as an ssh session's or a terminal window's is, and SIGHUP takes its default action there."""
@@ -203,10 +207,11 @@ def on_a_terminal() -> None:
 
 
 @pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="no hang-up on Windows")
-def test_a_hang_up_saves_the_model_and_the_lines_go_with_the_terminal(tmp_path):
+def test_a_hang_up_saves_the_model_and_keeps_the_lines_the_terminal_lost(tmp_path):
     """An ssh session that drops, or a terminal window closed: the terminal hangs up, the kernel sends
     SIGHUP to the run in it, and every write to it fails from then on (EIO). Each script ends at the
-    loop's next turn, exits 129 and keeps a whole model; a second SIGHUP changes nothing. SIGHUP used to
+    loop's next turn, exits 129 and keeps a whole model, and its "training stopped" line in its folder's
+    stderr.log; a second SIGHUP changes nothing. SIGHUP used to
     end the run at once, without its model; caught alone, the run's next line ("training stopped", on
     stderr) raised OSError before the save. With only the SIGHUP handler redirecting, a run exited 1 once
     in CI, most likely on an EIO that came before its SIGHUP; OutputGuard now takes such a write. Every
@@ -244,7 +249,8 @@ def test_a_hang_up_saves_the_model_and_the_lines_go_with_the_terminal(tmp_path):
                 while process.poll() is None and time.monotonic() < deadline:
                     read_the_terminals()
                 assert process.returncode == 128 + signal.SIGHUP, shown[script]
-                assert_saved_not_evaluated(script, cwd)
+                kept = (assert_saved_not_evaluated(script, cwd) / "stderr.log").read_text()
+                assert re.match(LOST_HEADER, kept) and "\nSIGHUP received: training stopped at step " in kept, kept
     finally:
         for master in terminals.values():
             os.close(master)
@@ -255,12 +261,17 @@ def reader_and_writer(reader: str) -> tuple[int, int]:
     return pty.openpty() if reader == "terminal" else os.pipe()
 
 
-def points_at_dev_null(file: int | str) -> bool:
-    """Whether a file descriptor of ours, or a path such as /proc/PID/fd/1, is /dev/null."""
+def points_at_dev_null(fd: int) -> bool:
+    """Whether a file descriptor of ours is /dev/null."""
+    return os.path.samestat(os.stat(fd), os.stat(os.devnull))
+
+
+def points_at(link: str) -> str:
+    """Where a /proc/PID/fd/N link points ("" once that process has ended)."""
     try:
-        return os.path.samestat(os.stat(file), os.stat(os.devnull))
-    except FileNotFoundError:  # that process ended
-        return False
+        return os.readlink(link)
+    except FileNotFoundError:
+        return ""
 
 
 @pytest.mark.parametrize("reader", ["terminal", "pipe"])
@@ -288,6 +299,46 @@ def test_output_guard_sends_what_has_no_reader_to_dev_null(sac, reader):
     stream.close()
 
 
+@pytest.mark.parametrize("reader, buffering", [("terminal", "line"), ("pipe", "block"), ("pipe", "none")])
+def test_output_guard_keeps_what_its_reader_lost_in_the_runs_folder(sac, reader, buffering, tmp_path):
+    """With the run's folder named, its stdout goes on in folder/stdout.log, as nohup's output goes on in
+    nohup.out: a line saying when and why, then the line that met the dead reader, then the rest. Buffered
+    as Python buffers stdout there, or not at all, as under `python -u` (PYTHONUNBUFFERED), where the
+    text of the write that failed is not kept by the stream and the guard writes it again."""
+    read_end, write_end = reader_and_writer(reader)
+    if buffering == "none":
+        stream = io.TextIOWrapper(io.FileIO(write_end, "w"), write_through=True)
+        assert not isinstance(stream.buffer, io.BufferedIOBase)
+    else:
+        stream = os.fdopen(write_end, "w", buffering=1 if buffering == "line" else -1)
+    guard = sac.OutputGuard(stream, "stdout", str(tmp_path))
+    guard.write("read\n")
+    guard.flush()
+    assert os.read(read_end, 100).startswith(b"read")
+    os.close(read_end)
+    guard.write("lost\n")
+    guard.flush()
+    guard.write("and more\n")
+    guard.flush()
+    kept = (tmp_path / "stdout.log").read_text()
+    header = re.match(LOST_HEADER, kept)
+    assert header and header.groups() == ((reader, "stdout", "EIO") if reader == "terminal" else (reader, "stdout", "EPIPE"))
+    assert kept[header.end() :] == "lost\nand more\n"
+    assert os.path.samestat(os.stat(write_end), os.stat(tmp_path / "stdout.log"))
+    stream.close()
+
+
+def test_output_guard_whose_folder_cannot_be_written_sends_the_output_to_dev_null(sac, tmp_path):
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    with os.fdopen(write_end, "w") as stream:
+        guard = sac.OutputGuard(stream, "stderr", str(tmp_path / "removed"))  # the run's folder deleted during the run
+        guard.write("lost\n")
+        guard.flush()
+        assert points_at_dev_null(write_end)
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize("reader", ["terminal", "pipe"])
 def test_output_guard_writes_lines_through_itself(sac, reader):
     read_end, write_end = reader_and_writer(reader)
@@ -313,17 +364,21 @@ def test_output_guard_raises_any_other_error(sac):
 
 
 def test_output_guard_wraps_each_stream_with_a_reader_once(sac, tmp_path, monkeypatch):
+    """Once per process, and then keeping what it loses in the folder of the run that installed it last."""
     read_end, write_end = os.pipe()
+    monkeypatch.chdir(tmp_path)
     with os.fdopen(write_end, "w") as pipe, open(tmp_path / "log", "w") as file:
         monkeypatch.setattr(sys, "stdout", pipe)
         monkeypatch.setattr(sys, "stderr", file)
-        sac.OutputGuard.install()
+        sac.OutputGuard.install("runs/first")
         assert isinstance(sys.stdout, sac.OutputGuard) and sys.stdout.stream is pipe
+        assert (sys.stdout.name, sys.stdout.folder) == ("stdout", str(tmp_path / "runs" / "first"))  # not moved by a later chdir
         assert sys.stderr is file  # a file has no reader to lose
         guarded = sys.stdout
-        sac.OutputGuard.install()  # a second run in this process
-        load_script("ppo_il").OutputGuard.install()  # or another script's: another copy of the class
-        assert sys.stdout is guarded and sys.stderr is file
+        sac.OutputGuard.install("runs/second")  # a second run in this process
+        assert sys.stdout is guarded and sys.stdout.folder == str(tmp_path / "runs" / "second")
+        load_script("ppo_il").OutputGuard.install("runs/third")  # or another script's: another copy of the class
+        assert sys.stdout is guarded and sys.stderr is file and sys.stdout.folder == str(tmp_path / "runs" / "third")
         monkeypatch.setattr(sys, "stdout", io.StringIO())  # no file descriptor: a notebook's stream, or capsys
         sac.OutputGuard.install()
         assert isinstance(sys.stdout, io.StringIO)
@@ -337,8 +392,9 @@ READER = {"sac_continuous": "terminal", "jirl_sac_continuous": "pipe", "ppo_il":
 def test_a_run_whose_output_lost_its_reader_trains_on(tmp_path):
     """A run under disown or setsid whose ssh session dropped gets no SIGHUP, but its terminal fails every
     write (EIO); a run piped to `tee`, whose tee ended, fails with EPIPE. Each used to end at its next print,
-    with exit status 1 and no model. Now its stdout and stderr go to /dev/null and it trains on, until
-    SIGTERM ends it with its model (its "training stopped" line, on stderr, also reaches the dead reader)."""
+    with exit status 1 and no model. Now its stdout and stderr go on in its folder's stdout.log and
+    stderr.log and it trains on, until SIGTERM ends it with its model and its "training stopped" line,
+    on stderr, is kept there."""
     readers = {}  # script: the reader's end of its terminal or pipe
 
     def start(script: str, args: list[str], cwd: Path) -> subprocess.Popen:
@@ -359,13 +415,19 @@ def test_a_run_whose_output_lost_its_reader_trains_on(tmp_path):
                         shown += os.read(readers[script], 4096).decode(errors="replace")
                 os.close(readers.pop(script))  # the terminal hangs up, or tee ends
                 stdout, deadline = f"/proc/{process.pid}/fd/1", time.monotonic() + 120
-                while not points_at_dev_null(stdout) and process.poll() is None and time.monotonic() < deadline:
+                while points_at(stdout).startswith(("pipe:", "/dev/pts/")) and time.monotonic() < deadline:  # until a write meets the dead reader
                     time.sleep(0.05)
                 assert process.poll() is None, f"{script} ended at its first print without a reader, status {process.returncode}: {shown}"
-                assert points_at_dev_null(stdout), shown
+                (run_dir,) = (cwd / "runs").iterdir()
+                assert points_at(stdout) == str(run_dir / "stdout.log"), shown
                 process.send_signal(signal.SIGTERM)
                 assert process.wait(timeout=60) == 128 + signal.SIGTERM
                 assert_saved_not_evaluated(script, cwd)
+                header = LOST_HEADER.replace("(terminal|pipe)", READER[script])
+                assert re.match(header.replace("(stdout|stderr)", "stdout"), (run_dir / "stdout.log").read_text())
+                kept = (run_dir / "stderr.log").read_text()
+                assert re.match(header.replace("(stdout|stderr)", "stderr"), kept)
+                assert re.search(r"\nSIGTERM received: training stopped at step [\d,]+ of [\d,]+; saving the model without evaluating it\n", kept), kept
     finally:
         for reader in readers.values():
             os.close(reader)
