@@ -809,6 +809,8 @@ class OutputGuard:
 
     def __init__(self, stream, name: str = "output", folder: Optional[str] = None) -> None:
         self.stream, self.name, self.folder = stream, name, folder
+        if hasattr(stream, "reconfigure"):  # on a pipe, by line as on a terminal: the 8 KB block Python buffers there is lost whole when it meets a dead reader
+            stream.reconfigure(line_buffering=True)
 
     @classmethod
     def install(cls, folder: Optional[str] = None) -> None:

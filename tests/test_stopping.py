@@ -274,23 +274,39 @@ def points_at(link: str) -> str:
         return ""
 
 
+def shown(read_end: int, size: int) -> str:
+    """What a reader gets of a run's output within 5 s, up to `size` characters (a terminal's CR LF read as LF)."""
+    got = b""
+    while len(got.replace(b"\r\n", b"\n")) < size and select.select([read_end], [], [], 5)[0]:
+        got += os.read(read_end, 65536)
+    return got.replace(b"\r\n", b"\n").decode()
+
+
+def stream_on(write_end: int, buffering: str) -> io.TextIOWrapper:
+    """A text stream on write_end, buffered as Python buffers stdout on a terminal ("line"), on a pipe
+    ("block": 8 KB), or not at all, as under `python -u` (PYTHONUNBUFFERED): "none"."""
+    if buffering == "none":
+        stream = io.TextIOWrapper(io.FileIO(write_end, "w"), write_through=True)
+        assert not isinstance(stream.buffer, io.BufferedIOBase)
+        return stream
+    return os.fdopen(write_end, "w", buffering=1 if buffering == "line" else -1)
+
+
 @pytest.mark.parametrize("reader", ["terminal", "pipe"])
 def test_output_guard_sends_what_has_no_reader_to_dev_null(sac, reader):
-    """Buffered as Python buffers stdout there: by line on a terminal, where the write meets the dead
-    reader; by block on a pipe, where the flush does."""
+    """Without a folder. A line meets the dead reader as it is written, on a pipe too, where the guard
+    buffers by line; text without a newline, at the flush."""
     read_end, write_end = reader_and_writer(reader)
-    stream = os.fdopen(write_end, "w", buffering=1 if reader == "terminal" else -1)
+    stream = stream_on(write_end, "line" if reader == "terminal" else "block")
     guard = sac.OutputGuard(stream)
     assert guard.write("read\n") == 5
-    guard.flush()
-    assert os.read(read_end, 100).startswith(b"read")
+    assert shown(read_end, 5) == "read\n"  # with no flush
     os.close(read_end)  # the terminal hangs up, or the pipe's reader ends
     with pytest.raises(OSError) as raised:
         os.write(write_end, b"x")
     assert raised.value.errno == (errno.EIO if reader == "terminal" else errno.EPIPE)
-    assert not points_at_dev_null(write_end)
-    assert guard.write("lost\n") == 5
-    assert points_at_dev_null(write_end) == (reader == "terminal")
+    assert guard.write("lost") == 4
+    assert not points_at_dev_null(write_end)  # still in the buffer
     guard.flush()
     assert points_at_dev_null(write_end)
     guard.write("and more\n")
@@ -302,28 +318,23 @@ def test_output_guard_sends_what_has_no_reader_to_dev_null(sac, reader):
 @pytest.mark.parametrize("reader, buffering", [("terminal", "line"), ("pipe", "block"), ("pipe", "none")])
 def test_output_guard_keeps_what_its_reader_lost_in_the_runs_folder(sac, reader, buffering, tmp_path):
     """With the run's folder named, its stdout goes on in folder/stdout.log, as nohup's output goes on in
-    nohup.out: a line saying when and why, then the line that met the dead reader, then the rest. Buffered
-    as Python buffers stdout there, or not at all, as under `python -u` (PYTHONUNBUFFERED), where the
-    text of the write that failed is not kept by the stream and the guard writes it again."""
+    nohup.out: a line saying when and why, then every line from the one that met the dead reader on.
+    On a pipe Python passes stdout on by blocks of 8 KB, and a block that meets the dead reader is lost
+    whole: the guard makes it pass each line as written (which also shows `| tee` each line as printed).
+    Unbuffered, the stream drops the text of the write that failed, and the guard writes it again."""
     read_end, write_end = reader_and_writer(reader)
-    if buffering == "none":
-        stream = io.TextIOWrapper(io.FileIO(write_end, "w"), write_through=True)
-        assert not isinstance(stream.buffer, io.BufferedIOBase)
-    else:
-        stream = os.fdopen(write_end, "w", buffering=1 if buffering == "line" else -1)
+    stream = stream_on(write_end, buffering)
     guard = sac.OutputGuard(stream, "stdout", str(tmp_path))
-    guard.write("read\n")
-    guard.flush()
-    assert os.read(read_end, 100).startswith(b"read")
+    lines = [f"{i:3d} {'x' * 55}\n" for i in range(200)]  # 12 KB: more than a block
+    guard.writelines(lines[:50])
+    assert shown(read_end, 3000) == "".join(lines[:50])  # each as written, with no flush
     os.close(read_end)
-    guard.write("lost\n")
-    guard.flush()
-    guard.write("and more\n")
+    guard.writelines(lines[50:])
     guard.flush()
     kept = (tmp_path / "stdout.log").read_text()
     header = re.match(LOST_HEADER, kept)
-    assert header and header.groups() == ((reader, "stdout", "EIO") if reader == "terminal" else (reader, "stdout", "EPIPE"))
-    assert kept[header.end() :] == "lost\nand more\n"
+    assert header and header.groups() == (reader, "stdout", "EIO" if reader == "terminal" else "EPIPE")
+    assert kept[header.end() :] == "".join(lines[50:])
     assert os.path.samestat(os.stat(write_end), os.stat(tmp_path / "stdout.log"))
     stream.close()
 
