@@ -2,7 +2,8 @@
 
 Reads one JSON list per line on stdin, the arguments after `python` (`["-m", "envs.baselines", ...]` or
 `["benchmarks/learning.py", ...]`, paths relative to the repository), and prints a JSON list with, for
-each line in turn, null when its program accepts it, or what the program said when it refused it. Each program runs as `python` would run it, up to its argument parser's return: argparse's
+each line in turn, null when its program accepts it, or what the program said when it refused it.
+Each program runs as `python` would run it, up to its argument parser's return: argparse's
 `parse_args` and tyro's `cli` stop the program there, so nothing trains and nothing is written."""
 
 import argparse
