@@ -211,11 +211,11 @@ def test_a_hang_up_saves_the_model_and_keeps_the_lines_the_terminal_lost(tmp_pat
     """An ssh session that drops, or a terminal window closed: the terminal hangs up, the kernel sends
     SIGHUP to the run in it, and every write to it fails from then on (EIO). Each script ends at the
     loop's next turn, exits 129 and keeps a whole model, and its "training stopped" line in its folder's
-    stderr.log; a second SIGHUP changes nothing. SIGHUP used to
-    end the run at once, without its model; caught alone, the run's next line ("training stopped", on
-    stderr) raised OSError before the save. With only the SIGHUP handler redirecting, a run exited 1 once
-    in CI, most likely on an EIO that came before its SIGHUP; OutputGuard now takes such a write. Every
-    terminal is read as its run writes to it, as an ssh server or terminal window does."""
+    stderr.log; a second SIGHUP changes nothing. SIGHUP used to end the run at once, without its model;
+    caught alone, the run's next line ("training stopped", on stderr) raised OSError before the save.
+    With only the SIGHUP handler redirecting, a run exited 1 once in CI, most likely on an EIO that came
+    before its SIGHUP; OutputGuard now takes such a write. Every terminal is read as its run writes to
+    it, as an ssh server or terminal window does."""
     terminals = {}  # script: the terminal's other side, as the ssh server or terminal window holds it
     shown = dict.fromkeys(SCRIPTS, "")  # script: what its run has written there
 
@@ -274,7 +274,7 @@ def points_at(link: str) -> str:
         return ""
 
 
-def shown(read_end: int, size: int) -> str:
+def received(read_end: int, size: int) -> str:
     """What a reader gets of a run's output within 5 s, up to `size` characters (a terminal's CR LF read as LF)."""
     got = b""
     while len(got.replace(b"\r\n", b"\n")) < size and select.select([read_end], [], [], 5)[0]:
@@ -300,7 +300,7 @@ def test_output_guard_sends_what_has_no_reader_to_dev_null(sac, reader):
     stream = stream_on(write_end, "line" if reader == "terminal" else "block")
     guard = sac.OutputGuard(stream)
     assert guard.write("read\n") == 5
-    assert shown(read_end, 5) == "read\n"  # with no flush
+    assert received(read_end, 5) == "read\n"  # with no flush
     os.close(read_end)  # the terminal hangs up, or the pipe's reader ends
     with pytest.raises(OSError) as raised:
         os.write(write_end, b"x")
@@ -327,7 +327,7 @@ def test_output_guard_keeps_what_its_reader_lost_in_the_runs_folder(sac, reader,
     guard = sac.OutputGuard(stream, "stdout", str(tmp_path))
     lines = [f"{i:3d} {'x' * 55}\n" for i in range(200)]  # 12 KB: more than a block
     guard.writelines(lines[:50])
-    assert shown(read_end, 3000) == "".join(lines[:50])  # each as written, with no flush
+    assert received(read_end, 3000) == "".join(lines[:50])  # each as written, with no flush
     os.close(read_end)
     guard.writelines(lines[50:])
     guard.flush()
