@@ -1234,6 +1234,7 @@ if __name__ == "__main__":
         baseline.reset()
 
     stop = StopRequest()  # from here Ctrl-C, SIGTERM, or an env, a baseline or the logs failing ends the training, keeping what was learnt
+    sound, diverged = None, ""  # (step, actor, critics) at the last episode end whose weights were all finite; what diverged
     for global_step in range(args.total_timesteps):
         if writer.failure and stop.reason is None:  # the logs failed: end as for a failing env
             stop.end(f"{args.exp_name}: error: {writer.failure}", 1)
@@ -1249,7 +1250,8 @@ if __name__ == "__main__":
         with torch.inference_mode():
             mean, log_std = actor(torch.from_numpy(obs).float().unsqueeze(0))
             if not math.isfinite(sum(mean[0].tolist() + log_std[0].tolist())):  # a diverged training: end before its NaN acts (torch's sum here costs 3 µs more)
-                stop.end(f"{args.exp_name}: error: the training diverged: {sac.divergence() or 'the actor overflowed'}", 1)
+                diverged = sac.divergence() or "the actor overflowed"
+                stop.end(f"{args.exp_name}: error: the training diverged: {diverged}", 1)
                 break
             rl_action = torch.tanh(torch.normal(mean, log_std.exp()))[0].numpy()  # a^rl ~ pi(.|s_t)
         mean, log_std = mean[0].numpy().astype(np.float64), log_std[0].numpy().astype(np.float64)
@@ -1323,6 +1325,10 @@ if __name__ == "__main__":
                 reference = float(baseline_rewards.sum()) if estimator == "paired" else baseline_return
                 earned.end_episode(episode_return, reference, len(episode_rewards))
                 writer.add_scalar("gate/guidance_progress", earned.progress, global_step)
+            if args.save_model:  # kept for a divergence to come, which would leave nothing worth saving
+                weights = ({k: v.clone() for k, v in sac.actor.state_dict().items()}, {k: v.clone() for k, v in sac.qf.state_dict().items()})
+                if all(bool(torch.isfinite(w).all()) for part in weights for w in part.values()):
+                    sound = (global_step, *weights)
             episode, episode_rewards = episode + 1, []
             previous_rl_transition = None
             gate.new_episode()
@@ -1369,8 +1375,13 @@ if __name__ == "__main__":
                 gate_terms = 0
 
     stop.restore()  # a signal from here on (saving, evaluating) acts at once
+    rolled_back = sound[0] if diverged and sound is not None else None
+    if rolled_back is not None:  # the model of the last episode end before the divergence is saved, not the diverged one
+        sac.actor.load_state_dict(sound[1])
+        sac.qf.load_state_dict(sound[2])
     if stop.reason is not None:
-        print(f"{stop.reason}: training stopped at step {global_step:,} of {args.total_timesteps:,}" + ("; saving the model without evaluating it" if args.save_model else ""), file=sys.stderr)
+        saving = "; saving the model" + (f" of step {rolled_back:,}, the last sound one," if rolled_back is not None else "") + " without evaluating it"
+        print(f"{stop.reason}: training stopped at step {global_step:,} of {args.total_timesteps:,}" + (saving if args.save_model else ""), file=sys.stderr)
     if args.save_model:
         model_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
         try:

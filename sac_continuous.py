@@ -1005,6 +1005,7 @@ if __name__ == "__main__":
         baseline.reset()
 
     stop = StopRequest()  # from here Ctrl-C, SIGTERM, or an env, a baseline or the logs failing ends the training, keeping what was learnt
+    sound, diverged = None, ""  # (step, actor, critics) at the last episode end whose weights were all finite; what diverged
     for global_step in range(args.total_timesteps):
         if writer.failure and stop.reason is None:  # the logs failed: end as for a failing env
             stop.end(f"{args.exp_name}: error: {writer.failure}", 1)
@@ -1018,7 +1019,8 @@ if __name__ == "__main__":
                 action, _, _ = actor.get_action(torch.from_numpy(obs).float().unsqueeze(0))
             action = action[0].numpy()
             if not math.isfinite(sum(action.tolist())):  # a diverged training: end before its NaN acts (numpy's sum here costs 7 µs more)
-                stop.end(f"{args.exp_name}: error: the training diverged: {sac.divergence() or 'the actor overflowed'}", 1)
+                diverged = sac.divergence() or "the actor overflowed"
+                stop.end(f"{args.exp_name}: error: the training diverged: {diverged}", 1)
                 break
 
         # TRY NOT TO MODIFY: execute the game and log data.
@@ -1048,6 +1050,10 @@ if __name__ == "__main__":
                 baseline_regret_per_step += regret_per_step
                 writer.add_scalar("charts/baseline_regret", baseline_regret, global_step)
                 writer.add_scalar("charts/baseline_regret_per_step", baseline_regret_per_step, global_step)
+            if args.save_model:  # kept for a divergence to come, which would leave nothing worth saving
+                weights = ({k: v.clone() for k, v in sac.actor.state_dict().items()}, {k: v.clone() for k, v in sac.qf.state_dict().items()})
+                if all(bool(torch.isfinite(w).all()) for part in weights for w in part.values()):
+                    sound = (global_step, *weights)
             episode, episode_rewards = episode + 1, []
             try:
                 obs, _ = env.reset(seed=args.seed + episode)
@@ -1082,8 +1088,13 @@ if __name__ == "__main__":
             writer.add_scalar("charts/baseline_rollout_seconds", baseline_seconds, global_step)
 
     stop.restore()  # a signal from here on (saving, evaluating) acts at once
+    rolled_back = sound[0] if diverged and sound is not None else None
+    if rolled_back is not None:  # the model of the last episode end before the divergence is saved, not the diverged one
+        sac.actor.load_state_dict(sound[1])
+        sac.qf.load_state_dict(sound[2])
     if stop.reason is not None:
-        print(f"{stop.reason}: training stopped at step {global_step:,} of {args.total_timesteps:,}" + ("; saving the model without evaluating it" if args.save_model else ""), file=sys.stderr)
+        saving = "; saving the model" + (f" of step {rolled_back:,}, the last sound one," if rolled_back is not None else "") + " without evaluating it"
+        print(f"{stop.reason}: training stopped at step {global_step:,} of {args.total_timesteps:,}" + (saving if args.save_model else ""), file=sys.stderr)
     if args.save_model:
         model_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
         try:

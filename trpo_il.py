@@ -1138,6 +1138,7 @@ if __name__ == "__main__":
     next_obs = observe(raw_obs)
     next_done = 0.0
     stop = StopRequest()  # from here Ctrl-C, SIGTERM, or an env, a baseline or the logs failing ends the training, keeping what was learnt
+    sound, diverged = None, ""  # (step, agent) before the last update, the agent that acted through the rollout; what diverged
     for iteration in range(1, num_iterations + 1):
         if writer.failure and stop.reason is None:  # the logs failed: end as for a failing env
             stop.end(f"{args.exp_name}: error: {writer.failure}", 1)
@@ -1153,7 +1154,8 @@ if __name__ == "__main__":
                 action, logprob, _, value = agent.get_action_and_value(next_obs.unsqueeze(0))
                 values[step] = value.flatten()
             if not math.isfinite(sum(action.tolist()[0])):  # finite weights whose mean overflows float32: end before the env gets it (action[0].tolist() costs 5 µs more)
-                stop.end(f"{args.exp_name}: error: the training diverged: the policy's mean overflowed", 1)
+                diverged = "the policy's mean overflowed"
+                stop.end(f"{args.exp_name}: error: the training diverged: {diverged}", 1)
                 break
             actions[step] = action[0]
             logprobs[step] = logprob[0]
@@ -1211,6 +1213,8 @@ if __name__ == "__main__":
             next_obs = observe(raw_obs)
         if stop.reason is not None:  # the env failed, or a signal came, during the rollout: no update from it
             break
+        if args.save_model:  # kept for an update that diverges, which would leave nothing worth saving
+            sound = (global_step, {k: v.clone() for k, v in agent.state_dict().items()})
 
         # bootstrap value if not done
         with torch.no_grad():
@@ -1269,8 +1273,12 @@ if __name__ == "__main__":
         writer.add_scalar("charts/baseline_rollout_seconds", baseline_seconds, global_step)
 
     stop.restore()  # a signal from here on (saving, evaluating) acts at once
+    rolled_back = sound[0] if diverged and sound is not None else None
+    if rolled_back is not None:  # the agent from before the update that diverged is saved, not the diverged one
+        agent.load_state_dict(sound[1])
     if stop.reason is not None:
-        print(f"{stop.reason}: training stopped at step {global_step:,} of {num_iterations * batch_size:,}" + ("; saving the model without evaluating it" if args.save_model else ""), file=sys.stderr)
+        saving = "; saving the model" + (f" of step {rolled_back:,}, the last sound one," if rolled_back is not None else "") + " without evaluating it"
+        print(f"{stop.reason}: training stopped at step {global_step:,} of {num_iterations * batch_size:,}" + (saving if args.save_model else ""), file=sys.stderr)
     if args.save_model:
         model_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
         try:

@@ -1,6 +1,7 @@
 """A training that diverges (a learning rate or a reward far too large) ends in one line that says so and
 names the parts holding a NaN or an infinity, before its NaN acts on the env, is learnt from or is
-logged; the car's training keeps the last state it saved before the divergence. Before, SAC's NaN
+logged; the scripts save their last sound model, and the car's training keeps the last state it saved
+before the divergence. Before, SAC's NaN
 action reached the env, which was blamed for it (or, on envs that ignore a NaN action, the run went on
 to the end), and JIRL, PPO+IL and TRPO+IL stopped with torch's traceback."""
 
@@ -8,6 +9,7 @@ import math
 import re
 import runpy
 import sys
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -18,7 +20,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from conftest import ROOT, load_script, overflow_the_actor, overflow_the_policy_mean
 from test_sac_script import SHORT_RUNS, scalars
-from test_stopping import without
+from test_stopping import SCRIPTS, without
 
 
 class RecordingPendulum(PendulumEnv):
@@ -75,21 +77,26 @@ def poison(tensor: torch.Tensor, value: float) -> None:
         tensor.view(-1)[0] = value
 
 
-def poison_the_actor_at_its_second_step(monkeypatch, how: str) -> None:
-    """Right after the actor's second optimizer step, a NaN in the bias of its mean head ("mean head") or
-    of its log-std head ("log-std head"), its mean head's weights and bias at 3e38 ("overflow": an
-    infinite mean, which SAC's tanh turns into a finite action), or `overflow_the_actor` ("overflow to
-    NaN": a NaN mean, and SAC's action NaN). The
-    actor's parameters are fc1's weight and bias, fc2's, fc_mean's and fc_logstd's, in that order."""
-    real_step, calls = torch.optim.Adam.step, []
+def poison_the_actor(monkeypatch, how: str, at_step: int = 2) -> None:
+    """Right after the actor's second optimizer step (or its at_step-th), a NaN in the bias of its mean head
+    ("mean head") or of its log-std head ("log-std head"), its mean head's weights and bias at 3e38
+    ("overflow": an infinite mean, which SAC's tanh turns into a finite action), `overflow_the_actor`
+    ("overflow to NaN": a NaN mean, and SAC's action NaN), or a NaN in the critics' first weight, the actor
+    left finite until its next step ("critics"). The actor's parameters are fc1's weight and bias, fc2's,
+    fc_mean's and fc_logstd's, in that order."""
+    real_step, calls, critics = torch.optim.Adam.step, [], []
 
     def step(self, *args, **kwargs):
         loss = real_step(self, *args, **kwargs)
+        if len(self.param_groups) == 1:  # the critics' optimizer
+            critics.append(self)
         if len(self.param_groups) == 2:  # the actor's optimizer: its second group is the entropy coefficient
             calls.append(self)
-            if len(calls) == 2:
+            if len(calls) == at_step:
                 params = self.param_groups[0]["params"]
-                if how == "overflow":
+                if how == "critics":
+                    poison(critics[-1].param_groups[0]["params"][0], math.nan)
+                elif how == "overflow":
                     with torch.no_grad():
                         params[-4].fill_(3e38)
                         params[-3].fill_(3e38)
@@ -138,7 +145,7 @@ def test_a_diverging_training_ends_naming_what_diverged_before_its_nan_acts(scri
     if cause == "overflow" and script.endswith("_il"):
         overflow_the_policy_at_its_first_update(monkeypatch, script)
     elif cause.endswith("head") or cause.startswith("overflow"):
-        poison_the_actor_at_its_second_step(monkeypatch, cause)
+        poison_the_actor(monkeypatch, cause)
     args = [*without(SHORT_RUNS[script], "--total-timesteps"), "--total-timesteps", "1000", "--env-id", f"{__name__}:RecordingPendulum-v0",
             "--baseline", "test_stopping:zero_torque", "--regret-estimator", "off", "--save-model", *(TOO_LARGE_A_STEP[script] if cause == "step" else [])]  # fmt: skip
     monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
@@ -148,9 +155,13 @@ def test_a_diverging_training_ends_naming_what_diverged_before_its_nan_acts(scri
     out, err = capsys.readouterr()
     total = "1,000" if script.startswith(("sac", "jirl")) else "896"
     stopped = re.search(rf"^{script}: error: the training diverged: {re.escape(reason)}: training stopped at step ([\d,]+) of {total};"
-                        " saving the model without evaluating it$", err, re.M)  # fmt: skip
+                        r" saving the model(?: of step ([\d,]+), the last sound one,)? without evaluating it$", err, re.M)  # fmt: skip
     assert stopped, err
     at = int(stopped[1].replace(",", ""))
+    kept = stopped[2] and int(stopped[2].replace(",", ""))
+    # PPO and TRPO keep the agent of the last rollout's end, from before the update that diverged or made the
+    # policy overflow; SAC and JIRL diverge here before their first episode ends, and have none to keep
+    assert kept == (at // 128 * 128 if script.endswith("_il") else None)
     if step is not None:
         assert at == step
     else:  # SAC and JIRL: some steps after the updates start at --learning-starts 100
@@ -168,16 +179,80 @@ def test_a_diverging_training_ends_naming_what_diverged_before_its_nan_acts(scri
         events.Reload()
         logged_at = [e.step for e in events.Scalars("charts/SPS")] if "charts/SPS" in events.Tags()["scalars"] else []
         assert logged_at == list(range(128, at, 128))
-    model = run_dir / f"{script}.cleanrl_model"  # saved as it is: refused by name when loaded, if a weight is NaN
-    if cause == "overflow" and not script.endswith("_il"):  # finite weights: it loads, and its deterministic action tanh(mean) saturates
+    model = run_dir / f"{script}.cleanrl_model"  # SAC's and JIRL's saved as it is: refused by name when loaded, if a weight is NaN
+    if script.endswith("_il") or cause == "overflow":  # the agent kept; or finite weights: it loads, and SAC's tanh(mean) saturates
         assert np.isfinite(load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)).all()
-    elif cause.startswith("overflow"):  # it loads, and its evaluation refuses the action before the env is blamed for it
-        action = r"\[nan\]" if cause == "overflow to NaN" else r"\[inf\]"
-        with pytest.raises(ValueError, match=rf"^the policy's action at step 0 of evaluation episode 0 is {action}, not finite: its network overflows float32 there$"):
+    elif cause == "overflow to NaN":  # it loads, and its evaluation refuses the action before the env is blamed for it
+        with pytest.raises(ValueError, match=r"^the policy's action at step 0 of evaluation episode 0 is \[nan\], not finite: its network overflows float32 there$"):
             load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)
     else:
         with pytest.raises(ValueError, match=r"damaged .* checkpoint: its (actor|agent) holds a NaN or infinite weight$"):
             load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)
+
+
+def run_on_recording_pendulum(script: str, total: int, cwd: Path, monkeypatch) -> Path:
+    """A --save-model run of the script for `total` steps in cwd; its model. Nothing in it depends on
+    `total` but its length (JIRL's hand-over is given a horizon and PPO's learning rate is not annealed),
+    so that runs of two lengths train alike."""
+    args = [*without(SHORT_RUNS[script], "--total-timesteps"), "--total-timesteps", str(total), "--env-id", f"{__name__}:RecordingPendulum-v0",
+            "--baseline", "test_stopping:zero_torque", "--regret-estimator", "off", "--save-model", "--eval-episodes", "1",
+            *{"jirl_sac_continuous": ["--guidance-steps", "500"], "ppo_il": ["--no-anneal-lr"]}.get(script, [])]  # fmt: skip
+    cwd.mkdir()
+    monkeypatch.chdir(cwd)
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
+    runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
+    (run_dir,) = (cwd / "runs").iterdir()
+    return run_dir / f"{script}.cleanrl_model"
+
+
+# script: (how it diverges, the step it stops at, the step of the model it keeps, the parts of its checkpoint)
+LATE_DIVERGENCE = {"sac_continuous": ("actor", 299, 199, ("actor", "qf")), "jirl_sac_continuous": ("actor", 299, 199, ("actor", "qf")),
+                   "ppo_il": ("reward", 512, 512, ("agent",)), "trpo_il": ("reward", 512, 512, ("agent",))}  # fmt: skip
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_training_that_diverges_saves_its_last_sound_model(script, tmp_path, monkeypatch, capsys, recorded):
+    """Hours of training are not lost to a divergence. SAC and JIRL keep the model of the last episode end
+    before it (step 199 here; the actor poisoned at its 200th optimizer step, step 298); PPO+IL and
+    TRPO+IL the agent of the last rollout's end, from before the update that diverged (step 512, on the
+    third episode's rewards). It is the same, bit for bit, as what a run of the same seed that ends there
+    saves: a run of 199 steps, or of the 3 rollouts before (384 steps)."""
+    how, stop, kept, parts = LATE_DIVERGENCE[script]
+    if how == "reward":
+        monkeypatch.setattr(RecordingPendulum, "scale", 1e37)
+    reference = run_on_recording_pendulum(script, 199 if kept == 199 else kept - 128, tmp_path / "reference", monkeypatch)
+    if how == "actor":
+        poison_the_actor(monkeypatch, "mean head", at_step=200)
+    with pytest.raises(SystemExit) as ended:
+        run_on_recording_pendulum(script, 1000, tmp_path / "diverged", monkeypatch)
+    assert ended.value.code == 1
+    err = capsys.readouterr().err
+    stopped = re.search(rf"^{script}: error: the training diverged: .*: training stopped at step {stop} of (1,000|896);"
+                        rf" saving the model of step {kept}, the last sound one, without evaluating it$", err, re.M)  # fmt: skip
+    assert stopped, err
+    (run_dir,) = (tmp_path / "diverged" / "runs").iterdir()
+    model = run_dir / f"{script}.cleanrl_model"
+    saved, expected = torch.load(model, weights_only=True), torch.load(reference, weights_only=True)
+    for part in parts:
+        assert saved[part].keys() == expected[part].keys()
+        assert all(torch.equal(saved[part][name], expected[part][name]) for name in saved[part]), part
+    assert np.isfinite(load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)).all()
+
+
+@pytest.mark.parametrize("script", ["sac_continuous", "jirl_sac_continuous"])
+def test_an_episode_end_whose_critics_hold_a_nan_is_not_kept(script, tmp_path, monkeypatch, capsys, recorded):
+    """The critics poisoned right after the actor's 100th step (step 198): at the episode end of step 199
+    the actor is finite and the critics are not, so that model is not kept; the actor diverges at its next
+    update, and with no sound model before, the diverged one is saved, refused when loaded."""
+    poison_the_actor(monkeypatch, "critics", at_step=100)
+    with pytest.raises(SystemExit):
+        run_on_recording_pendulum(script, 1000, tmp_path / "run", monkeypatch)
+    err = capsys.readouterr().err
+    assert re.search(rf"^{script}: error: the training diverged: NaN or infinite values in the actor, .*: training stopped at step 201 of 1,000;"
+                     " saving the model without evaluating it$", err, re.M), err  # fmt: skip
+    (run_dir,) = (tmp_path / "run" / "runs").iterdir()
+    with pytest.raises(ValueError, match=r"its actor holds a NaN or infinite weight$"):
+        load_script(script).evaluate(str(run_dir / f"{script}.cleanrl_model"), "Pendulum-v1", 1, 0)
 
 
 @pytest.mark.parametrize("script", ["sac_continuous", "jirl_sac_continuous"])
