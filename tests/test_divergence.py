@@ -137,20 +137,31 @@ def overflow_the_policy_at_its_first_update(monkeypatch, script: str) -> None:
         monkeypatch.setattr(torch.nn.utils, "vector_to_parameters", write)
 
 
+def run_on_recording_pendulum(script: str, total: int, cwd: Path, monkeypatch, *extra: str) -> Path:
+    """A --save-model run of the script for `total` steps in cwd, with `extra` arguments; its model. Nothing
+    in it depends on `total` but its length (JIRL's hand-over is given a horizon and PPO's learning rate is
+    not annealed), so that runs of two lengths train alike."""
+    args = [*without(SHORT_RUNS[script], "--total-timesteps"), "--total-timesteps", str(total), "--env-id", f"{__name__}:RecordingPendulum-v0",
+            "--baseline", "test_stopping:zero_torque", "--regret-estimator", "off", "--save-model", "--eval-episodes", "1",
+            *{"jirl_sac_continuous": ["--guidance-steps", "500"], "ppo_il": ["--no-anneal-lr"]}.get(script, []), *extra]  # fmt: skip
+    cwd.mkdir(exist_ok=True)
+    monkeypatch.chdir(cwd)
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
+    runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
+    (run_dir,) = (cwd / "runs").iterdir()
+    return run_dir / f"{script}.cleanrl_model"
+
+
 @pytest.mark.parametrize("script, cause, reason, step", DIVERGING)
 def test_a_diverging_training_ends_naming_what_diverged_before_its_nan_acts(script, cause, reason, step, tmp_path, monkeypatch, capsys, recorded):
-    monkeypatch.chdir(tmp_path)
     if cause == "reward":
         monkeypatch.setattr(RecordingPendulum, "scale", 1e37)
     if cause == "overflow" and script.endswith("_il"):
         overflow_the_policy_at_its_first_update(monkeypatch, script)
     elif cause.endswith("head") or cause.startswith("overflow"):
         poison_the_actor(monkeypatch, cause)
-    args = [*without(SHORT_RUNS[script], "--total-timesteps"), "--total-timesteps", "1000", "--env-id", f"{__name__}:RecordingPendulum-v0",
-            "--baseline", "test_stopping:zero_torque", "--regret-estimator", "off", "--save-model", *(TOO_LARGE_A_STEP[script] if cause == "step" else [])]  # fmt: skip
-    monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
     with pytest.raises(SystemExit) as ended:
-        runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
+        run_on_recording_pendulum(script, 1000, tmp_path, monkeypatch, *(TOO_LARGE_A_STEP[script] if cause == "step" else []))
     assert ended.value.code == 1
     out, err = capsys.readouterr()
     total = "1,000" if script.startswith(("sac", "jirl")) else "896"
@@ -188,21 +199,6 @@ def test_a_diverging_training_ends_naming_what_diverged_before_its_nan_acts(scri
     else:
         with pytest.raises(ValueError, match=r"damaged .* checkpoint: its (actor|agent) holds a NaN or infinite weight$"):
             load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)
-
-
-def run_on_recording_pendulum(script: str, total: int, cwd: Path, monkeypatch) -> Path:
-    """A --save-model run of the script for `total` steps in cwd; its model. Nothing in it depends on
-    `total` but its length (JIRL's hand-over is given a horizon and PPO's learning rate is not annealed),
-    so that runs of two lengths train alike."""
-    args = [*without(SHORT_RUNS[script], "--total-timesteps"), "--total-timesteps", str(total), "--env-id", f"{__name__}:RecordingPendulum-v0",
-            "--baseline", "test_stopping:zero_torque", "--regret-estimator", "off", "--save-model", "--eval-episodes", "1",
-            *{"jirl_sac_continuous": ["--guidance-steps", "500"], "ppo_il": ["--no-anneal-lr"]}.get(script, [])]  # fmt: skip
-    cwd.mkdir()
-    monkeypatch.chdir(cwd)
-    monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
-    runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
-    (run_dir,) = (cwd / "runs").iterdir()
-    return run_dir / f"{script}.cleanrl_model"
 
 
 # script: (how it diverges, the step it stops at, the step of the model it keeps, the parts of its checkpoint)
