@@ -75,7 +75,7 @@ class Common:
     steering_axis: int = 0
     """gamepad axis the human steers with"""
     log_dir: str = "runs"
-    """TensorBoard logs go to log_dir/{mode}__{time} (_2, _3, ... if a session started in the same second took it)"""
+    """TensorBoard logs go to log_dir/{mode}__{time} (_2, _3, ... if a session started in the same second took it); so do stdout.log and stderr.log after a hang-up"""
     seed: int = 0
     """seed of the simulated car's start poses"""
 
