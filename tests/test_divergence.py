@@ -201,9 +201,12 @@ def test_a_diverging_training_ends_naming_what_diverged_before_its_nan_acts(scri
             load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)
 
 
-# script: (how it diverges, the step it stops at, the step of the model it keeps, the parts of its checkpoint)
-LATE_DIVERGENCE = {"sac_continuous": ("actor", 299, 199, ("actor", "qf")), "jirl_sac_continuous": ("actor", 299, 199, ("actor", "qf")),
-                   "ppo_il": ("reward", 512, 512, ("agent",)), "trpo_il": ("reward", 512, 512, ("agent",))}  # fmt: skip
+# script: (how it diverges, the step it stops at, the step of the model it keeps, the length of a run of the
+# same seed that ends with that model, the parts of its checkpoint). SAC's and JIRL's episode end of step 199
+# comes before that step's update, the last of a 199-step run; PPO's and TRPO's agent at the end of the rollout
+# of step 512 is the one after the update of step 384, the last of a 384-step run.
+LATE_DIVERGENCE = {"sac_continuous": ("actor", 299, 199, 199, ("actor", "qf")), "jirl_sac_continuous": ("actor", 299, 199, 199, ("actor", "qf")),
+                   "ppo_il": ("reward", 512, 512, 384, ("agent",)), "trpo_il": ("reward", 512, 512, 384, ("agent",))}  # fmt: skip
 
 
 @pytest.mark.parametrize("script", SCRIPTS)
@@ -213,10 +216,10 @@ def test_a_training_that_diverges_saves_its_last_sound_model(script, tmp_path, m
     TRPO+IL the agent of the last rollout's end, from before the update that diverged (step 512, on the
     third episode's rewards). It is the same, bit for bit, as what a run of the same seed that ends there
     saves: a run of 199 steps, or of the 3 rollouts before (384 steps)."""
-    how, stop, kept, parts = LATE_DIVERGENCE[script]
+    how, stop, kept, reference_length, parts = LATE_DIVERGENCE[script]
     if how == "reward":
         monkeypatch.setattr(RecordingPendulum, "scale", 1e37)
-    reference = run_on_recording_pendulum(script, 199 if kept == 199 else kept - 128, tmp_path / "reference", monkeypatch)
+    reference = run_on_recording_pendulum(script, reference_length, tmp_path / "reference", monkeypatch)
     if how == "actor":
         poison_the_actor(monkeypatch, "mean head", at_step=200)
     with pytest.raises(SystemExit) as ended:
