@@ -1,6 +1,7 @@
 # PPO (Schulman et al. 2017) started from a policy that imitates the baseline: PPO+IL, one of the JIRL
 # paper's comparison methods (Sec. V.B). One file, CleanRL's shape; logs the same baseline regret as the SAC scripts.
 # Run: python ppo_il.py --env-id Pendulum-v1 --total-timesteps 100000
+import copy
 import errno
 import importlib
 import io
@@ -1072,7 +1073,7 @@ if __name__ == "__main__":
     next_obs = observe(raw_obs)
     next_done = 0.0
     stop = StopRequest()  # from here Ctrl-C, SIGTERM, or an env, a baseline or the logs failing ends the training, keeping what was learnt
-    sound, diverged = None, ""  # (step, agent) before the last update, the agent that acted through the rollout; what diverged
+    sound, diverged = None, ""  # (step, agent, observation statistics) before the last update, as the agent acted through the rollout; what diverged
     for iteration in range(1, num_iterations + 1):
         if writer.failure and stop.reason is None:  # the logs failed: end as for a failing env
             stop.end(f"{args.exp_name}: error: {writer.failure}", 1)
@@ -1153,7 +1154,7 @@ if __name__ == "__main__":
         if stop.reason is not None:  # the env failed, or a signal came, during the rollout: no update from it
             break
         if args.save_model:  # kept for an update that diverges, which would leave nothing worth saving
-            sound = (global_step, {k: v.clone() for k, v in agent.state_dict().items()})
+            sound = (global_step, {k: v.clone() for k, v in agent.state_dict().items()}, copy.deepcopy(obs_rms))
 
         # bootstrap value if not done
         with torch.no_grad():
@@ -1243,6 +1244,7 @@ if __name__ == "__main__":
     rolled_back = sound[0] if diverged and sound is not None else None
     if rolled_back is not None:  # the agent from before the update that diverged is saved, not the diverged one
         agent.load_state_dict(sound[1])
+        obs_rms = sound[2]  # the statistics it was trained with, not those of the rollout that overflowed it
     if stop.reason is not None:
         saving = "; saving the model" + (f" of step {rolled_back:,}, the last sound one," if rolled_back is not None else "") + " without evaluating it"
         print(f"{stop.reason}: training stopped at step {global_step:,} of {num_iterations * batch_size:,}" + (saving if args.save_model else ""), file=sys.stderr)

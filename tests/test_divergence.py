@@ -27,10 +27,13 @@ class RecordingPendulum(PendulumEnv):
     """Pendulum-v1 that keeps, per instance in order of creation, every action it is given. With `scale`
     set, its episode from reset seed 3 (a run's third, at --seed 1) pays `scale` times Pendulum's reward:
     with 1e37 the rewards stay finite in float32 (1.6e38 at most), so CheckedEnv passes them, but their
-    returns do not, and a critic fitted to them diverges."""
+    returns do not, and a critic fitted to them diverges. With `wild_at` set to (a reset seed, n), the n-th
+    step of that episode returns an observation of 1e4 in every component: finite, as a sensor's glitch
+    may be."""
 
     instances: list = []
     scale = 1.0
+    wild_at = None
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
@@ -39,11 +42,15 @@ class RecordingPendulum(PendulumEnv):
 
     def reset(self, *, seed=None, options=None):
         self.factor = self.scale if seed == 3 else 1.0
+        self.wild, self.t = (self.wild_at[1] if self.wild_at and seed == self.wild_at[0] else None), 0
         return super().reset(seed=seed, options=options)
 
     def step(self, action):
         self.actions.append(np.array(action, dtype=np.float64))
         obs, reward, terminated, truncated, info = super().step(action)
+        self.t += 1
+        if self.t == self.wild:
+            obs = np.full_like(obs, 1e4)
         return obs, reward * self.factor, terminated, truncated, info
 
 
@@ -109,11 +116,26 @@ def poison_the_actor(monkeypatch, how: str, at_step: int = 2) -> None:
     monkeypatch.setattr(torch.optim.Adam, "step", step)
 
 
-def overflow_the_policy_at_its_first_update(monkeypatch, script: str) -> None:
-    """PPO's or TRPO's policy left by its first update with finite weights and an infinite mean
-    (`overflow_the_policy_mean`). PPO: after its optimizer's second step (two minibatches, one epoch: the
-    whole update). TRPO: after each parameter write of its line search, which then rejects every trial
-    step and writes the start back, poisoned too."""
+def overflow_on_a_wild_speed(mean: list) -> None:
+    """PPO's and TRPO's `actor_mean` parameters (16 units) made finite weights whose mean is exactly 0 until
+    the normalized angular speed reaches 9 (observations are clipped at 10), and +inf from then on: the
+    first layer gives tanh(10 x - 90), -1 for x below 7; the second the mean of those plus 1, 0 or 2; the
+    last sums 16 times 3e38 tanh(that)."""
+    with torch.no_grad():
+        mean[0].zero_()
+        mean[0][:, 2] = 10.0
+        mean[1].fill_(-90.0)
+        mean[2].fill_(1 / 16)
+        mean[3].fill_(1.0)
+        mean[4].fill_(3e38)
+        mean[5].zero_()
+
+
+def overflow_the_policy_at_its_first_update(monkeypatch, script: str, rig=overflow_the_policy_mean) -> None:
+    """PPO's or TRPO's policy left by its first update with finite weights whose mean overflows: everywhere
+    (`overflow_the_policy_mean`), or as `rig` makes it. PPO: after its optimizer's second step (two
+    minibatches, one epoch: the whole update). TRPO: after each parameter write of its line search, which
+    then rejects every trial step and writes the start back, rigged too."""
     if script == "ppo_il":
         real_step, calls = torch.optim.Adam.step, []
 
@@ -123,7 +145,7 @@ def overflow_the_policy_at_its_first_update(monkeypatch, script: str) -> None:
             if len(params) == 13:  # the RL phase's optimizer: the log-std (the agent's own parameter comes first), the critic's 6 tensors, the mean's 6
                 calls.append(self)
                 if len(calls) == 2:
-                    overflow_the_policy_mean(params[7:])
+                    rig(params[7:])
             return loss
 
         monkeypatch.setattr(torch.optim.Adam, "step", step)
@@ -132,7 +154,7 @@ def overflow_the_policy_at_its_first_update(monkeypatch, script: str) -> None:
 
         def write(vector, params):  # policy_params: the mean's 6 tensors, then the log-std
             real_write(vector, params)
-            overflow_the_policy_mean(params[:6])
+            rig(params[:6])
 
         monkeypatch.setattr(torch.nn.utils, "vector_to_parameters", write)
 
@@ -235,6 +257,34 @@ def test_a_training_that_diverges_saves_its_last_sound_model(script, tmp_path, m
     for part in parts:
         assert saved[part].keys() == expected[part].keys()
         assert all(torch.equal(saved[part][name], expected[part][name]) for name in saved[part]), part
+    assert np.isfinite(load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)).all()
+
+
+NORM_OBS = {"ppo_il": ["--norm-obs"], "trpo_il": ["--norm-obs", "True"]}  # TRPO's default follows the env: on for Lunar Lander
+
+
+@pytest.mark.parametrize("script", ["ppo_il", "trpo_il"])
+def test_the_last_sound_agent_is_saved_with_the_observation_statistics_it_was_trained_with(script, tmp_path, monkeypatch, capsys, recorded):
+    """A policy that overflows mid-rollout, on an observation unlike any before (1e4 at step 250, the 50th
+    of the episode from reset seed 2), is rolled back to the agent of step 128, and its observation
+    statistics with it: those of a 128-step run, not ones that the rollout since, the wild observation
+    among them, has moved."""
+    reference = torch.load(run_on_recording_pendulum(script, 128, tmp_path / "reference", monkeypatch, *NORM_OBS[script]), weights_only=True)
+    capsys.readouterr()
+    monkeypatch.setattr(RecordingPendulum, "wild_at", (2, 50))
+    first = len(recorded)
+    overflow_the_policy_at_its_first_update(monkeypatch, script, rig=overflow_on_a_wild_speed)
+    with pytest.raises(SystemExit):
+        run_on_recording_pendulum(script, 1000, tmp_path / "diverged", monkeypatch, *NORM_OBS[script])
+    err = capsys.readouterr().err
+    assert re.search(rf"^{script}: error: the training diverged: the policy's mean overflowed: training stopped at step 251 of 896;"
+                     " saving the model of step 128, the last sound one, without evaluating it$", err, re.M), err  # fmt: skip
+    assert len(recorded[first].actions) == 250  # the rigged policy was finite up to the wild observation: the run's training env, made first
+    (run_dir,) = (tmp_path / "diverged" / "runs").iterdir()
+    model = run_dir / f"{script}.cleanrl_model"
+    saved = torch.load(model, weights_only=True)
+    for stat in ("obs_mean", "obs_var"):
+        assert torch.equal(saved[stat], reference[stat]), stat
     assert np.isfinite(load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)).all()
 
 
