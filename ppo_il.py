@@ -1244,7 +1244,7 @@ if __name__ == "__main__":
     rolled_back = sound[0] if diverged and sound is not None else None
     if rolled_back is not None:  # the agent from before the update that diverged is saved, not the diverged one
         agent.load_state_dict(sound[1])
-        obs_rms = sound[2]  # the statistics it was trained with, not those of the rollout that overflowed it
+        obs_rms = sound[2]  # the statistics of the rollout it acted through, not moved by the one that overflowed it
     if stop.reason is not None:
         saving = "; saving the model" + (f" of step {rolled_back:,}, the last sound one," if rolled_back is not None else "") + " without evaluating it"
         print(f"{stop.reason}: training stopped at step {global_step:,} of {num_iterations * batch_size:,}" + (saving if args.save_model else ""), file=sys.stderr)

@@ -264,7 +264,7 @@ NORM_OBS = {"ppo_il": ["--norm-obs"], "trpo_il": ["--norm-obs", "True"]}  # TRPO
 
 
 @pytest.mark.parametrize("script", ["ppo_il", "trpo_il"])
-def test_the_last_sound_agent_is_saved_with_the_observation_statistics_it_was_trained_with(script, tmp_path, monkeypatch, capsys, recorded):
+def test_the_last_sound_agent_is_saved_with_the_observation_statistics_of_its_rollout(script, tmp_path, monkeypatch, capsys, recorded):
     """A policy that overflows mid-rollout, on an observation unlike any before (1e4 at step 250, the 50th
     of the episode from reset seed 2), is rolled back to the agent of step 128, and its observation
     statistics with it: those of a 128-step run, not ones that the rollout since, the wild observation
