@@ -117,10 +117,10 @@ def poison_the_actor(monkeypatch, how: str, at_step: int = 2) -> None:
 
 
 def overflow_on_a_wild_speed(mean: list) -> None:
-    """PPO's and TRPO's `actor_mean` parameters (16 units) made finite weights whose mean is exactly 0 until
-    the normalized angular speed reaches 9 (observations are clipped at 10), and +inf from then on: the
-    first layer gives tanh(10 x - 90), -1 for x below 7; the second the mean of those plus 1, 0 or 2; the
-    last sums 16 times 3e38 tanh(that)."""
+    """PPO's and TRPO's `actor_mean` parameters (16 units) made finite weights whose mean is exactly 0 while
+    the normalized angular speed x is below 7, and +inf above 8.9 (observations are clipped at 10): the
+    first layer gives tanh(10 x - 90), exactly -1 below 7; the second the mean of those plus 1, from 0 to
+    2; the last sums 16 times 3e38 tanh(that), beyond float32 once tanh(that) passes 0.071."""
     with torch.no_grad():
         mean[0].zero_()
         mean[0][:, 2] = 10.0
@@ -134,8 +134,8 @@ def overflow_on_a_wild_speed(mean: list) -> None:
 def overflow_the_policy_at_its_first_update(monkeypatch, script: str, rig=overflow_the_policy_mean) -> None:
     """PPO's or TRPO's policy left by its first update with finite weights whose mean overflows: everywhere
     (`overflow_the_policy_mean`), or as `rig` makes it. PPO: after its optimizer's second step (two
-    minibatches, one epoch: the whole update). TRPO: after each parameter write of its line search, which
-    then rejects every trial step and writes the start back, rigged too."""
+    minibatches, one epoch: the whole update). TRPO: after each parameter write of its line search, so that
+    whatever it ends with, an accepted trial step or the start written back, is rigged too."""
     if script == "ppo_il":
         real_step, calls = torch.optim.Adam.step, []
 
