@@ -5,9 +5,11 @@ import runpy
 import shutil
 import sys
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from gymnasium.envs.classic_control.pendulum import PendulumEnv
 from torch.func import functional_call
 
 from conftest import ROOT, load_script
@@ -417,6 +419,89 @@ def test_the_last_rollouts_advantages_are_gae_summed_up_to_each_episode_end(name
                 break
     np.testing.assert_allclose(g["advantages"].numpy(), expected, rtol=1e-4, atol=1e-4)
     np.testing.assert_allclose(g["returns"].numpy(), expected + values, rtol=1e-4, atol=1e-4)
+
+
+class EndingPendulum(PendulumEnv):
+    """Pendulum-v1 whose episodes end in each of the ways an episode can end, under a time limit of 50 steps:
+    from reset seed 2 it terminates at its 30th step, from seed 3 at its 50th, where the time limit also
+    truncates it, and from any other seed the time limit alone truncates it. Each instance, in order of
+    creation, keeps the observation and reward of every step it took."""
+
+    instances: list = []
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.steps = []
+        EndingPendulum.instances.append(self)
+
+    def reset(self, *, seed=None, options=None):
+        self.end_at, self.t = {2: 30, 3: 50}.get(seed), 0
+        return super().reset(seed=seed, options=options)
+
+    def step(self, action):
+        obs, reward, _, truncated, info = super().step(action)
+        self.t += 1
+        self.steps.append((obs.copy(), float(reward)))
+        return obs, reward, self.t == self.end_at, truncated, info
+
+
+gym.register("EndingPendulum-v0", entry_point=EndingPendulum, max_episode_steps=50)
+
+
+@pytest.mark.parametrize("name", ["ppo_il", "trpo_il"])
+def test_a_rollout_bootstraps_an_episode_cut_by_the_time_limit_and_no_other_end(name, tmp_path, monkeypatch):
+    """The reward stored for an episode's last step is the env's, plus gamma V(s_T) of the observation the
+    step returned when the time limit alone ended the episode: its future was cut off, not ended. An
+    episode that terminated, at the time limit or before it, adds nothing. V is the critic the rollout
+    acted with (the model kept before the update). One rollout of 256 steps, from --seed 1, holds
+    episodes from reset seeds 1 to 6: cut at steps 50, 180 and 230, terminated at 80 and, with the limit's
+    cut as well, at 130; the sixth runs on past the rollout's end, which GAE bootstraps instead."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(EndingPendulum, "instances", [])
+    norm = [] if name == "ppo_il" else ["--norm-obs", "False", "--norm-reward", "False"]  # trpo_il's are Optional (tuned)
+    argv = [f"{name}.py", *SHORT[name], "--env-id", "EndingPendulum-v0", "--baseline", "envs.pendulum:pendulum_swing_up", *norm,
+            "--total-timesteps", "256", "--il-steps", "200", "--il-max-epochs", "2", "--hidden-size", "16", "--seed", "1",
+            "--baseline-eval-episodes", "1", "--eval-episodes", "1", "--save-model"]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", argv)
+    g = runpy.run_path(str(ROOT / f"{name}.py"), run_name="__main__")
+    training = EndingPendulum.instances[0]  # the training env is made first
+    assert len(training.steps) == 256
+    kept_step, weights, _ = g["sound"]
+    assert kept_step == 256
+    agent = load_script(name).Agent(3, 1, 16)
+    agent.load_state_dict(weights)
+    cut, ended = [49, 179, 229], [79, 129]
+    with torch.no_grad():
+        values = agent.get_value(torch.tensor(np.array([training.steps[t][0] for t in cut]))).numpy()[:, 0]
+    expected = np.array([reward for _, reward in training.steps])
+    expected[cut] += g["args"].gamma * values
+    np.testing.assert_allclose(g["rewards"].numpy(), expected, rtol=1e-6, atol=1e-6)
+    assert np.all(np.abs(g["args"].gamma * values) > 1e-3)  # the bootstrap is not too small to be seen
+    ends = np.append(g["dones"].numpy()[1:], float(g["next_done"])) == 1.0
+    assert ends.nonzero()[0].tolist() == sorted(cut + ended)
+
+
+@pytest.mark.parametrize("script", [ppo, trpo], ids=["ppo_il", "trpo_il"])
+@pytest.mark.parametrize("shape", [(3,), ()], ids=["observations", "returns"])
+def test_running_statistics_are_the_moments_of_everything_fed_to_them(script, shape):
+    """Chan et al.'s merge of batch moments, fed one row at a time as a rollout feeds it and in batches as
+    the imitation phase does, against the moments of all the rows at once. The statistics start as a
+    pseudo-row of weight c = 1e-4 with mean 0 and variance 1, so the reference holds it too:
+    mean = sum(x) / (n + c), var = (c (1 + mean^2) + sum((x - mean)^2)) / (n + c)."""
+    rng = np.random.default_rng(4)
+    batches = [rng.normal(loc, scale, size=(n, *shape)) for loc, scale, n in ((5.0, 0.1, 1), (-2.0, 3.0, 7), (40.0, 2.0, 64), (-7.0, 0.5, 200))]
+    batches += [rng.normal(3.0, 1.0, size=shape) for _ in range(50)]  # single rows, unbatched
+    rms = script.RunningMeanStd(shape)
+    for batch in batches:
+        rms.update(batch)
+    x, c = np.concatenate([np.reshape(b, (-1, *shape)) for b in batches]), 1e-4
+    mean = x.sum(0) / (len(x) + c)
+    var = (c * (1.0 + mean**2) + ((x - mean) ** 2).sum(0)) / (len(x) + c)
+    np.testing.assert_allclose(rms.mean, mean, rtol=1e-12)
+    np.testing.assert_allclose(rms.var, var, rtol=1e-10)
+    assert rms.count == pytest.approx(len(x) + c, rel=1e-15)
+    far = mean + 20.0 * np.sqrt(var)  # normalised, beyond the clip at 10
+    np.testing.assert_allclose(rms.normalize(np.stack([x[-1], far])), [(x[-1] - mean) / np.sqrt(var + 1e-8), np.full(shape, 10.0)], rtol=1e-6)
 
 
 @pytest.mark.parametrize("target_kl", [None, 1e-12])
