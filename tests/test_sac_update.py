@@ -123,21 +123,25 @@ class ReferenceSAC:
                 self.actor_optimizer.zero_grad()
                 actor_loss.backward()
                 self.actor_optimizer.step()
-                alpha_loss = (-self.log_alpha.exp() * (log_pi.detach() + self.target_entropy)).mean()
-                self.a_optimizer.zero_grad()
-                alpha_loss.backward()
-                self.a_optimizer.step()
-                alpha = self.log_alpha.exp().item()
-                losses["actor_loss"], losses["alpha_loss"] = actor_loss, alpha_loss
-        with torch.no_grad():
-            for target, critic in zip(self.targets, self.critics):
-                for tp, p in zip(target.parameters(), critic.parameters()):
-                    tp.mul_(1 - args.tau).add_(args.tau * p)
+                losses["actor_loss"] = actor_loss
+                if args.autotune:
+                    alpha_loss = (-self.log_alpha.exp() * (log_pi.detach() + self.target_entropy)).mean()
+                    self.a_optimizer.zero_grad()
+                    alpha_loss.backward()
+                    self.a_optimizer.step()
+                    alpha = self.log_alpha.exp().item()
+                    losses["alpha_loss"] = alpha_loss
+        if step % args.target_network_frequency == 0:
+            with torch.no_grad():
+                for target, critic in zip(self.targets, self.critics):
+                    for tp, p in zip(target.parameters(), critic.parameters()):
+                        tp.mul_(1 - args.tau).add_(args.tau * p)
         return losses
 
 
-def test_update_matches_reference(script):
-    args = script.Args(hidden_size=WIDTH, batch_size=BATCH, policy_frequency=2, q_lr=1e-3, policy_lr=3e-4)
+@pytest.mark.parametrize("settings", [{}, {"target_network_frequency": 3}, {"autotune": False, "alpha": 0.05}], ids=["defaults", "target-every-3", "fixed-alpha"])
+def test_update_matches_reference(script, settings):
+    args = script.Args(hidden_size=WIDTH, batch_size=BATCH, policy_frequency=2, q_lr=1e-3, policy_lr=3e-4, **settings)
     torch.manual_seed(0)
     agent = script.SoftActorCritic(OBS_DIM, ACT_DIM, args)
     critics = [reference_critic(), reference_critic()]
@@ -160,6 +164,7 @@ def test_update_matches_reference(script):
         expected = reference.update(data, step)
         for name, value in expected.items():
             torch.testing.assert_close(losses[name], value, rtol=1e-4, atol=1e-5, msg=f"step {step}: {name}")
+        assert losses.keys() - expected.keys() == {"alpha"}, "no loss that the reference has not"
 
     torch.testing.assert_close(agent.log_alpha, reference.log_alpha, rtol=1e-5, atol=1e-6)
     for a, b in zip(agent.actor.parameters(), reference_actor.parameters()):
