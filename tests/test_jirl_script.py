@@ -92,6 +92,7 @@ class Alternating(gym.Env):
 
 
 gym.register("Alternating-v0", entry_point=Alternating)
+gym.register("CutAlternating-v0", entry_point=Alternating, max_episode_steps=4)  # cut before the end at 5
 
 
 def every_other_step(obs):
@@ -100,13 +101,13 @@ def every_other_step(obs):
 '''
 
 
-def run_alternating(tmp_path, monkeypatch, *args: str) -> dict:
+def run_alternating(tmp_path, monkeypatch, *args: str, env_id: str = "alternating:Alternating-v0") -> dict:
     """JIRL on the alternating env, in process. A baseline that only intervenes cannot be measured, so
     neither the regret nor the earned schedule (which compares returns with the baseline's) can run."""
     (tmp_path / "alternating.py").write_text(ALTERNATING_ENV)
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.chdir(tmp_path)
-    argv = ["jirl_sac_continuous.py", "--env-id", "alternating:Alternating-v0", "--baseline", "alternating:every_other_step",
+    argv = ["jirl_sac_continuous.py", "--env-id", env_id, "--baseline", "alternating:every_other_step",
             "--regret-estimator", "off", "--guidance-schedule", "geometric", "--learning-starts", "20", "--batch-size", "16",
             "--hidden-size", "16", *args]  # fmt: skip
     monkeypatch.setattr(sys, "argv", argv)
@@ -144,6 +145,21 @@ def test_transitions_end_with_their_episode(tmp_path, monkeypatch):
     assert g["fabricated_transitions"] == baseline_steps and g["control_switches"] == switches
     assert rb.guidance[: rb.size].sum() == baseline_steps + penalties
     assert g["args"].guidance_steps == 26, "unset: half of --total-timesteps"
+
+
+def test_an_episode_cut_by_the_time_limit_ends_no_transition(tmp_path, monkeypatch):
+    """A time limit's cut is not a termination: the real row of the step it cuts, and the fabricated row
+    when the baseline acted there, keep termination 0 and bootstrap from their next state, as SAC's do.
+    The episodes are cut after 4 steps, before the env's own end at 5: the baseline acts at the cut in
+    those of even parity, the agent in those of odd parity."""
+    g = run_alternating(tmp_path, monkeypatch, "--intervention-mode", "--total-timesteps", "40", env_id="alternating:CutAlternating-v0")
+    rb = g["rb"]
+    t, next_t, parity, guidance = rb.obs[: rb.size, 0], rb.next_obs[: rb.size, 0], rb.obs[: rb.size, 1], rb.guidance[: rb.size]
+    cut = next_t == 4
+    assert (cut & ~guidance).sum() == 10, "each of the 10 episodes' last step, one real row"
+    assert (cut & guidance).sum() == (cut & ~guidance & (parity == 0)).sum() == 5, "a fabricated row where the baseline acted"
+    assert np.all(t[cut] == 3)
+    assert rb.terminations[: rb.size].sum() == 0
 
 
 def test_a_step_without_a_baseline_action_breaks_the_gate_window(tmp_path, monkeypatch):

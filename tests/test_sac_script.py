@@ -58,6 +58,42 @@ def test_truncated_transition_keeps_its_true_next_observation(tmp_path, monkeypa
     assert not np.allclose(rb.next_obs[last], rb.obs[last + 1])
 
 
+class EndingEpisodes(gym.Env):
+    """obs = (t, the reset seed mod 3). Under a time limit of 4 steps, the episodes from a seed of 0 mod 3
+    terminate at their 3rd step, those of 1 mod 3 at their 4th, where the limit also cuts them, and those
+    of 2 mod 3 are cut by the limit alone."""
+
+    observation_space = gym.spaces.Box(0.0, 4.0, (2,), np.float32)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t, self.kind = 0, seed % 3
+        return np.array([self.t, self.kind], np.float32), {}
+
+    def step(self, action):
+        self.t += 1
+        terminated = self.t == {0: 3, 1: 4}.get(self.kind)
+        return np.array([self.t, self.kind], np.float32), -abs(float(action[0])), terminated, False, {}
+
+
+gym.register("EndingEpisodes-v0", entry_point=EndingEpisodes, max_episode_steps=4)
+
+
+def test_a_transition_is_terminal_where_its_episode_terminated_not_where_the_time_limit_cut_it(tmp_path, monkeypatch):
+    """A terminal row's target has no future value; a row the time limit cut keeps it, so it is stored as
+    not terminal. Where both end the episode at once, it terminated (Gymnasium's meaning of the flags)."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["sac_continuous.py", "--env-id", "EndingEpisodes-v0", "--total-timesteps", "40", "--learning-starts", "20", *TINY])
+    g = runpy.run_path(str(ROOT / "sac_continuous.py"), run_name="__main__")
+    rb = g["rb"]
+    assert rb.size == 40
+    next_t, kind = rb.next_obs[: rb.size, 0], rb.obs[: rb.size, 1]
+    terminated, both, cut = (kind == 0) & (next_t == 3), (kind == 1) & (next_t == 4), (kind == 2) & (next_t == 4)
+    assert (terminated.sum(), both.sum(), cut.sum()) == (3, 4, 3)  # seeds 1, 2, 3, ...: 11 steps a cycle of the three
+    np.testing.assert_array_equal(rb.terminations[: rb.size, 0], terminated | both)
+
+
 def test_actions_before_learning_starts_are_uniform_draws_of_the_seeded_generator(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(sys, "argv", ["sac_continuous.py", "--total-timesteps", "120", "--learning-starts", "100", "--seed", "7", *TINY])
