@@ -504,20 +504,20 @@ def test_running_statistics_are_the_moments_of_everything_fed_to_them(script, sh
     np.testing.assert_allclose(rms.normalize(np.stack([x[-1], far])), [(x[-1] - mean) / np.sqrt(var + 1e-8), np.full(shape, 10.0)], rtol=1e-6)
 
 
-@pytest.mark.parametrize("target_kl", [None, 1e-12])
-def test_ppo_minimises_the_clipped_surrogate_and_value_loss_it_logs(target_kl, tmp_path, monkeypatch):
+@pytest.mark.parametrize("target_kl, clip_vloss", [(None, True), (1e-12, True), (None, False)], ids=["3-epochs", "target-kl", "no-clip-vloss"])
+def test_ppo_minimises_the_clipped_surrogate_and_value_loss_it_logs(target_kl, clip_vloss, tmp_path, monkeypatch):
     """The last minibatch's losses and gradient, written out here at the weights it was taken at:
     CleanRL's clipped surrogate on advantages normalised over the minibatch, the value loss clipped
-    around the rollout's values, and loss = pg - ent_coef * entropy + vf_coef * v. A small clip
-    coefficient, a large learning rate, three epochs and returns of order one (--norm-reward) make
-    both clips bind on both sides, on Lunar Lander's two action dimensions; --target-kl 1e-12 stops
+    around the rollout's values (not with --no-clip-vloss), and loss = pg - ent_coef * entropy + vf_coef * v.
+    A small clip coefficient, a large learning rate, three epochs and returns of order one (--norm-reward)
+    make both clips bind on both sides, on Lunar Lander's two action dimensions; --target-kl 1e-12 stops
     after the first epoch."""
     monkeypatch.chdir(tmp_path)
     clip, ent_coef, vf_coef, max_grad_norm = 0.05, 0.01, 0.7, 0.1
     argv = ["ppo_il.py", "--env-id", "LunarLanderContinuous-v3", "--num-steps", "128", "--total-timesteps", "128", "--num-minibatches", "2",
             "--update-epochs", "3", "--learning-rate", "3e-3", "--clip-coef", str(clip), "--ent-coef", str(ent_coef), "--vf-coef", str(vf_coef),
             "--max-grad-norm", str(max_grad_norm), "--norm-reward", "--il-steps", "200", "--il-max-epochs", "5", "--hidden-size", "16",
-            "--baseline-eval-episodes", "1", *([] if target_kl is None else ["--target-kl", str(target_kl)])]  # fmt: skip
+            "--baseline-eval-episodes", "1", *([] if target_kl is None else ["--target-kl", str(target_kl)]), *([] if clip_vloss else ["--no-clip-vloss"])]  # fmt: skip
     monkeypatch.setattr(sys, "argv", argv)
     taken = []  # (gradient before clipping, after it, its norm) at every PPO minibatch
     real_clip = torch.nn.utils.clip_grad_norm_
@@ -570,11 +570,12 @@ def test_ppo_minimises_the_clipped_surrogate_and_value_loss_it_logs(target_kl, t
     unclipped = (new_value - returns) ** 2
     clipped = (old_values + (new_value - old_values).clamp(-clip, clip) - returns) ** 2
     pg_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - clip, 1 + clip)).mean()
-    v_loss = 0.5 * torch.max(unclipped, clipped).mean()
+    v_loss = 0.5 * (torch.max(unclipped, clipped) if clip_vloss else unclipped).mean()
     entropy = mean_gaussian_entropy(std)
     if target_kl is None:  # the clips bind, both ways: min, max or no clip would each give other numbers
         outside = (ratio - 1).abs() > clip
-        assert (ratio > 1 + clip).any() and (ratio < 1 - clip).any() and outside[adv > 0].any() and outside[adv < 0].any()
+        if clip_vloss:  # without it the policy trains otherwise; the 3-epochs case shows the surrogate's clip binding
+            assert (ratio > 1 + clip).any() and (ratio < 1 - clip).any() and outside[adv > 0].any() and outside[adv < 0].any()
         assert (clipped > unclipped).any() and (clipped < unclipped).any()
     np.testing.assert_allclose(g["pg_loss"].item(), pg_loss.item(), rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(g["v_loss"].item(), v_loss.item(), rtol=1e-4)
@@ -594,6 +595,26 @@ def test_ppo_minimises_the_clipped_surrogate_and_value_loss_it_logs(target_kl, t
     assert norm == pytest.approx(total, rel=1e-3) and total > max_grad_norm
     for i, grad in after.items():
         np.testing.assert_allclose(grad.numpy(), before[i].numpy() * max_grad_norm / norm, rtol=1e-4, atol=1e-9, err_msg=names[i])
+
+
+@pytest.mark.parametrize("anneal", [True, False], ids=["anneal-lr", "no-anneal-lr"])
+def test_ppo_anneals_its_learning_rate_linearly_over_the_run(anneal, tmp_path, monkeypatch):
+    """CleanRL's schedule: of N rollouts, the k-th (from 0) updates at lr (1 - k / N), the last at lr / N;
+    --no-anneal-lr keeps lr. Three rollouts of two epochs of two minibatches: four Adam steps each."""
+    monkeypatch.chdir(tmp_path)
+    argv = ["ppo_il.py", "--num-steps", "128", "--total-timesteps", "384", "--num-minibatches", "2", "--update-epochs", "2", "--learning-rate", "1e-3",
+            "--il-steps", "200", "--il-max-epochs", "2", "--hidden-size", "16", "--baseline-eval-episodes", "1", *([] if anneal else ["--no-anneal-lr"])]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", argv)
+    real_step, rates = torch.optim.Adam.step, []
+
+    def recording_step(self, *a, **kw):
+        rates.append((self, self.param_groups[0]["lr"]))
+        return real_step(self, *a, **kw)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", recording_step)
+    g = runpy.run_path(str(ROOT / "ppo_il.py"), run_name="__main__")
+    taken = [lr for optimizer, lr in rates if optimizer is g["optimizer"]]  # not the imitation phase's
+    assert taken == pytest.approx([1e-3 * (1.0 - k / 3 if anneal else 1.0) for k in range(3) for _ in range(4)], rel=1e-12)
 
 
 def test_trpo_steps_from_the_rollouts_policy_on_normalised_advantages_then_fits_the_value(tmp_path, monkeypatch):
