@@ -535,9 +535,12 @@ def test_reopening_backs_off_exponentially_up_to_its_cap():
         return port
 
     link = HostLink("scripted://", backoff=(0.01, 0.05), opener=opener)  # not started: _reconnect runs here
-    link._stop_event = RecordingEvent()
+    link._armed, link._command = True, (0.2, 0.5, 0.0)  # armed and driving when the port went down
+    down = []  # what a caller sees at each wait while the port is down
+    link._stop_event = RecordingEvent(on_wait=lambda timeout: down.append((link.armed, link._command)))
     link._reconnect()
     assert link._stop_event.waits == [0.01, 0.02, 0.04, 0.05, 0.05, 0.05]
+    assert down == [(False, None)] * 6, "neither armed nor holding a command while the port is down"
     assert link.reconnects == 1 and link.connected.is_set() and link._port is port and not link.armed
 
 
