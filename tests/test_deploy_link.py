@@ -536,7 +536,7 @@ def test_reopening_backs_off_exponentially_up_to_its_cap():
 
     link = HostLink("scripted://", backoff=(0.01, 0.05), opener=opener)  # not started: _reconnect runs here
     link._armed, link._command = True, (0.2, 0.5, 0.0)  # armed and driving when the port went down
-    down = []  # what a caller sees at each wait while the port is down
+    down = []  # the link's armed flag (what link.armed tells a caller) and its command, at each wait while the port is down
     link._stop_event = RecordingEvent(on_wait=lambda timeout: down.append((link.armed, link._command)))
     link._reconnect()
     assert link._stop_event.waits == [0.01, 0.02, 0.04, 0.05, 0.05, 0.05]
