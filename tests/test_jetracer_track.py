@@ -9,7 +9,7 @@ import pytest
 
 from envs import get_baseline, make_env
 from envs.car_interface import MASK_SHAPE, OBS_SIZE, ActionMapping, action_to_commands, preprocess
-from envs.jetracer_track import JetRacerTrackEnv
+from envs.jetracer_track import CarSpec, JetRacerTrackEnv
 from envs.lane_follower import KD, KP, THROTTLE_ACTION, LaneFollower
 from envs.track import TrackSpec
 
@@ -214,6 +214,26 @@ def test_a_steady_turn_follows_the_kinematic_bicycles_circle():
     assert radius == pytest.approx(env.car.wheelbase / math.tan(0.6 * env.car.max_steering_angle), rel=1e-4)
 
 
+@pytest.mark.parametrize("car", [CarSpec(), CarSpec(steering_lag=0.4, speed_lag=0.05)], ids=["default", "slow-servo-quick-motor"])
+def test_the_servo_and_the_drive_train_follow_first_order_lags(car):
+    # with a constant target, x(t) = target + (x(0) - target) exp(-t / lag) at any time t, between steps or not
+    env = JetRacerTrackEnv(car=car, random_start=False)
+    env.reset(seed=0)
+    angle, speed = 0.6 * car.max_steering_angle, car.max_speed * (0.6 - car.throttle_deadband) / (1 - car.throttle_deadband)
+    for n in range(1, 9):  # from rest, the wheel straight
+        env.drive(0.6, 0.6)
+        t = n * env.dt
+        assert env._state[4] == pytest.approx(angle * (1 - math.exp(-t / car.steering_lag)), rel=1e-12)
+        assert env._state[3] == pytest.approx(speed * (1 - math.exp(-t / car.speed_lag)), rel=1e-12)
+    angle_then, speed_then = env._state[4], env._state[3]
+    for n in range(1, 9):  # the wheel swung the other way, the throttle released: the same lags, towards the new targets
+        env.drive(-0.3, 0.0)
+        t = n * env.dt
+        assert env._state[4] == pytest.approx(-0.5 * angle + (angle_then + 0.5 * angle) * math.exp(-t / car.steering_lag), rel=1e-12)
+        assert env._state[3] == pytest.approx(speed_then * math.exp(-t / car.speed_lag), rel=1e-12)
+    env.close()
+
+
 def test_leaving_the_lane_terminates_with_the_penalty():
     env = make_env("JetRacerTrack-v0")
     _, info = env.reset(seed=1)
@@ -285,6 +305,16 @@ def test_preprocessing_is_the_same_for_a_sim_frame_and_the_same_frame_from_a_cam
     env.close()
 
 
+def test_the_simulated_camera_delivers_bgr_as_the_cars_camera_does():
+    # the default floor is grey, so the lane mask alone cannot tell the channel order: light the ground orange
+    env = JetRacerTrackEnv(random_start=False)
+    env.reset(seed=0)
+    env._client.changeVisualShape(env._ground, -1, rgbaColor=[1.0, 0.5, 0.2, 1.0])  # red, green, blue
+    blue, green, red = env.camera_frame_bgr().reshape(-1, 3).mean(0)
+    env.close()
+    assert red - green > 10 and green - blue > 10, (blue, green, red)  # measured 108.7, 123.6, 148.9
+
+
 def test_lighting_randomisation_changes_frames_but_not_what_the_baseline_sees():
     env = make_env("JetRacerTrack-v0", randomize_lighting=True)
     frames, masks = [], []
@@ -350,8 +380,6 @@ def test_a_non_finite_action_or_command_is_refused_and_changes_nothing():
 
 
 def test_impossible_tracks_cars_and_rates_are_refused():
-    from envs.jetracer_track import CarSpec
-
     for bad in (dict(steering_lag=0.0), dict(wheelbase=-0.2), dict(throttle_deadband=1.0), dict(max_steering_angle=math.pi / 2), dict(camera_fov=math.nan), dict(speed_lag=math.nan)):
         with pytest.raises(ValueError, match="impossible car"):
             CarSpec(**bad)
@@ -360,12 +388,15 @@ def test_impossible_tracks_cars_and_rates_are_refused():
             make_env("JetRacerTrack-v0", 0, control_hz=hz)
     with pytest.raises(ValueError, match="render_mode must be None or 'rgb_array', got 'human'"):
         JetRacerTrackEnv(render_mode="human")
-    with pytest.raises(ValueError, match="impossible track"):
-        TrackSpec(radius=0.2)  # the lane (0.5 m wide) would cross the bend's centre
+    for radius in (0.2, 0.25):  # the lane (0.5 m wide) would cross the bend's centre, or its inner edge shrink to that point
+        with pytest.raises(ValueError, match="impossible track"):
+            TrackSpec(radius=radius)
     with pytest.raises(ValueError, match="impossible track"):
         TrackSpec(margin=math.nan)  # not the first size: min() would have let a NaN there through
-    with pytest.raises(ValueError, match="impossible track"):
-        TrackSpec(lane_width=0.05, tape_width=0.03)  # the two edge tapes would overlap
+    for lane_width in (0.05, 0.06):  # the two edge tapes would overlap, or meet with no lane surface between them
+        with pytest.raises(ValueError, match="impossible track"):
+            TrackSpec(lane_width=lane_width, tape_width=0.03)
+    TrackSpec(radius=0.26), TrackSpec(lane_width=0.07, tape_width=0.03)  # just inside each bound: accepted
 
 
 def test_the_track_passes_gymnasiums_env_checker_without_a_warning():
