@@ -702,6 +702,44 @@ def test_a_drive_ends_when_the_controller_restarts_unarmed(tmp_path, monkeypatch
     assert "baseline: error: the controller is no longer armed (it refused a command as not armed; did it restart?)" in err
 
 
+def test_a_disarmed_controller_is_explained_by_the_first_cause_the_link_can_tell():
+    from deploy import protocol as p
+    from deploy.link import Telemetry
+
+    def telemetry(status):
+        return Telemetry(0.0, 0.0, status, 1000, 0.0)
+
+    def refused(*reasons):  # NACKs of DRIVE commands, oldest first
+        return deque(p.Message(p.NACK, seq, (seq, p.DRIVE, reason)) for seq, reason in enumerate(reasons))
+
+    session = object.__new__(jetracer.CarSession)  # only what disarm_reason reads
+    everything = telemetry(p.STATUS_WATCHDOG_TRIPPED | p.STATUS_ESTOP_LATCHED)
+    cases = [  # (reconnects, telemetry, nacks) -> the reason; each case drops the cause the one before it named
+        ((2, everything, refused(p.NOT_ARMED)), "the link was lost and reopened 2 time(s)"),
+        ((0, everything, refused(p.NOT_ARMED)), "its watchdog tripped: no command reached it in time"),
+        ((0, telemetry(p.STATUS_ESTOP_LATCHED), refused(p.NOT_ARMED)), "its e-stop is latched"),
+        ((0, telemetry(p.STATUS_ARMED), refused(p.NOT_ARMED, p.ESTOP_LATCHED, p.OUT_OF_RANGE)), "it refused a command as e-stop latched; did it restart?"),
+        ((0, None, refused(p.ESTOP_LATCHED, p.NOT_ARMED, p.BAD_LENGTH)), "it refused a command as not armed; did it restart?"),
+        ((0, None, refused(p.OUT_OF_RANGE, p.BAD_LENGTH)), "it disarmed"),  # refusals of a bad command say nothing of arming
+    ]
+    for (reconnects, status, nacks), reason in cases:
+        session.link = types.SimpleNamespace(reconnects=reconnects, telemetry=status, nacks=nacks)
+        assert session.disarm_reason() == reason
+
+
+def test_an_action_the_safety_filter_refuses_is_a_stop_and_is_not_observed_as_the_previous_action():
+    # the loops refuse a non-finite action before they act; this is the session's own guard behind them
+    sent = []
+    session = object.__new__(jetracer.CarSession)  # only what act reads
+    session.stop_requested, session.previous_action = False, np.array([0.2, -0.5], dtype=np.float32)
+    session.safety = jetracer.SafetyFilter(ActionMapping(), max_steering_rate=4.0, period=0.05)
+    session.link = types.SimpleNamespace(armed=True, stop=lambda: sent.append("STOP"), drive=lambda *commands: sent.append(commands))
+    assert session.act(np.array([0.1, 1.0])) == (pytest.approx(0.1), pytest.approx(0.6))
+    assert session.act(np.array([np.nan, 1.0])) is None
+    assert sent == [(pytest.approx(0.1), pytest.approx(0.6)), "STOP"]
+    np.testing.assert_array_equal(session.previous_action, np.float32([0.1, 1.0]))  # the last action the car took
+
+
 def stale_camera(monkeypatch, stale: Callable[[int], bool], age: float = 1.0) -> list:
     """Make the car's simulated camera serve frames captured `age` seconds earlier on the reads (counted
     from 1) where stale(n) holds; train's shadow car, driven by the baseline, keeps fresh ones. Returns
