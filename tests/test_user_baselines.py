@@ -175,6 +175,50 @@ def test_every_script_runs_an_env_without_render_mode_and_with_a_fixed_action_di
     assert "baseline regret estimator: paired" in out.stdout
 
 
+STATEFUL_BASELINE = """
+import os
+
+import numpy as np
+
+
+class Stateful:
+    '''Writes, at each call, 1 if reset() came since its last call, else 0.'''
+
+    def __init__(self):
+        self.fresh, self.log = False, open(os.environ["BASELINE_LOG"], "a")
+
+    def reset(self):
+        self.fresh = True
+
+    def __call__(self, obs):
+        self.log.write("1" if self.fresh else "0")
+        self.log.flush()
+        self.fresh = False
+        return np.array([-float(obs[2])])
+"""
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_stateful_baseline_is_reset_before_every_episode_it_acts_in_and_at_no_other_call(script, tmp_path):
+    # every episode the baseline acts in (measured, paired, imitated, or in JIRL's loop) lasts Pendulum-v1's 200 steps, so its
+    # calls fall in blocks of 200 (JIRL's last episode cut short by the budget), each of which must start clean
+    (tmp_path / "stateful_baseline.py").write_text(STATEFUL_BASELINE)
+    log = tmp_path / "calls.txt"
+    env = dict(os.environ, PYTHONPATH=f"{tmp_path}{os.pathsep}{ROOT}", BASELINE_LOG=str(log))
+    if script in ("ppo_il", "trpo_il"):
+        budget = ["--num-steps", "256", "--total-timesteps", "512", "--il-steps", "400", "--il-max-epochs", "5"]
+    else:
+        budget = ["--total-timesteps", "450", "--learning-starts", "300", "--batch-size", "16"]
+    args = ["--baseline", "stateful_baseline:Stateful", "--hidden-size", "16", "--baseline-eval-episodes", "2", *budget]
+    out = run_script(ROOT / f"{script}.py", args, tmp_path, env)
+    assert out.returncode == 0, out.stderr
+    calls = log.read_text()
+    # the 2 measured episodes, then the first paired one; SAC's loop never asks the baseline, JIRL's asks it every step
+    expected = {"sac_continuous": 400 + 200 + 2 * 200, "jirl_sac_continuous": 400 + 200 + 450 + 2 * 200}
+    assert len(calls) == expected.get(script, len(calls)) and len(calls) >= 1000
+    assert [i for i, fresh in enumerate(calls) if fresh == "1"] == list(range(0, len(calls), 200))
+
+
 UNCLIPPED_ENV = """
 import gymnasium as gym
 import numpy as np
