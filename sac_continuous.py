@@ -1001,8 +1001,6 @@ if __name__ == "__main__":
     if baseline is not None:
         print(f"baseline regret estimator: {estimator}")
         writer.add_text("baseline_regret_estimator", estimator)
-    if hasattr(baseline, "reset"):
-        baseline.reset()
 
     stop = StopRequest()  # from here Ctrl-C, SIGTERM, or an env, a baseline or the logs failing ends the training, keeping what was learnt
     sound, diverged = None, ""  # (step, actor, critics) at the last episode end whose weights were all finite; what diverged
@@ -1070,8 +1068,6 @@ if __name__ == "__main__":
                     stop.end(f"{args.exp_name}: error: {err}", 1)
                     break
                 baseline_seconds += time.time() - t0
-            if hasattr(baseline, "reset"):
-                baseline.reset()
 
         # ALGO LOGIC: training.
         if global_step >= args.learning_starts:
