@@ -120,8 +120,19 @@ def test_gate_window_restarts_at_a_switch_and_at_an_episode_start():
     assert gate.decide(-4.0, 1.0, 1.0) is True  # 5 - 4 > 0: the step before the switch no longer counts
     gate.record(True)
     gate.new_episode()
-    assert gate.decide(-4.0, 1.0, 1.0) is False and len(gate.log_probs) == 1
+    assert gate.decide(-4.0, 1.0, 1.0) is False and len(gate.log_probs) == len(gate.log_rhos) == 1
     assert gate.record(False) is False  # the agent acted last in the episode before: no switch here
+
+
+def test_a_step_without_a_baseline_action_empties_both_sides_of_the_window():
+    # intervention mode: a step with no a^b has no pi(a^b|s), so the products start again at the next step that has one
+    gate = jirl.Gate(k_max=3)
+    assert gate.decide(3.0, 50.0, 1.0) is False  # 3 < log softplus(50) = 3.91
+    gate.record(False)
+    gate.skip()
+    gate.record(True)  # the agent acted, ungated
+    assert gate.decide(0.5, 1.0, 1.0) is True  # 0.5 > log softplus(1) = 0.27: the earlier step counts on neither side
+    assert list(gate.log_probs) == [0.5] and list(gate.log_rhos) == [pytest.approx(math.log(math.log1p(math.e)))]
 
 
 def test_gate_never_acts_on_nan_and_handles_extremes():
