@@ -342,11 +342,33 @@ def test_guidance_transitions_fade_after_the_hand_over(tmp_path, monkeypatch):
     argv = ["jirl_sac_continuous.py", "--guidance-steps", "300", "--guidance-schedule", "geometric", "--guidance-fade-steps", "100", "--regret-estimator", "off",
             "--total-timesteps", "500", "--learning-starts", "200", *TINY]  # fmt: skip
     monkeypatch.setattr(sys, "argv", argv)
-    g = runpy.run_path(str(ROOT / "jirl_sac_continuous.py"), run_name="__main__")
+    draws = []  # per batch sampled: the weight it was drawn with, and which of its rows are fabricated or switch-penalty rows
+
+    def trace(frame, event, arg):  # the script defines its buffer as it runs, so its sample() is watched rather than patched
+        if frame.f_code.co_name != "sample" or not frame.f_code.co_filename.endswith("jirl_sac_continuous.py"):
+            return None
+
+        def on_return(frame, event, arg):
+            if event == "return":
+                local = frame.f_locals
+                draws.append((local["guidance_weight"], local["self"].guidance[local["idx"]].copy()))
+            return on_return
+
+        return on_return
+
+    sys.settrace(trace)
+    try:
+        g = runpy.run_path(str(ROOT / "jirl_sac_continuous.py"), run_name="__main__")
+    finally:
+        sys.settrace(None)
     (run_dir,) = (tmp_path / "runs").iterdir()
     weights = scalars(run_dir)["charts/guidance_weight"]  # logged at steps 50, 100, ..., 450
     np.testing.assert_allclose(weights, [1, 1, 1, 1, 1, 1, 0.5, 0, 0])  # C = 0 from step 300
     assert g["fade"].faded == 100 and g["fabricated_transitions"] > 0  # C = 0 from step 300: the fade is complete
+    # the updates of steps 200-499 draw with the weight of their step: 1 until C reaches 0 at step 300, 0 from step 400
+    assert [weight for weight, _ in draws] == pytest.approx([1.0] * 101 + [1 - k / 100 for k in range(1, 100)] + [0.0] * 100)
+    assert sum(rows.sum() for _, rows in draws[:101]) > 500  # the baseline acted until about step 300: 1,554 of these 3,232 rows (measured)
+    assert not any(rows.any() for weight, rows in draws if weight == 0.0)
 
 
 @pytest.mark.parametrize("deterministic", [True, False])
