@@ -396,7 +396,8 @@ def test_impossible_tracks_cars_and_rates_are_refused():
     for lane_width in (0.05, 0.06):  # the two edge tapes would overlap, or meet with no lane surface between them
         with pytest.raises(ValueError, match="impossible track"):
             TrackSpec(lane_width=lane_width, tape_width=0.03)
-    TrackSpec(radius=0.26), TrackSpec(lane_width=0.07, tape_width=0.03)  # just inside each bound: accepted
+    for fits in (dict(radius=0.26), dict(lane_width=0.07, tape_width=0.03)):  # just inside each bound: made without an error
+        TrackSpec(**fits)
 
 
 def test_the_track_passes_gymnasiums_env_checker_without_a_warning():

@@ -213,9 +213,10 @@ def test_a_stateful_baseline_is_reset_before_every_episode_it_acts_in_and_at_no_
     out = run_script(ROOT / f"{script}.py", args, tmp_path, env)
     assert out.returncode == 0, out.stderr
     calls = log.read_text()
-    # the 2 measured episodes, then the first paired one; SAC's loop never asks the baseline, JIRL's asks it every step
-    expected = {"sac_continuous": 400 + 200 + 2 * 200, "jirl_sac_continuous": 400 + 200 + 450 + 2 * 200}
-    assert len(calls) == expected.get(script, len(calls)) and len(calls) >= 1000
+    # the 2 measured episodes, the first paired one and one paired to each episode end (2 in each script); SAC's loop never asks
+    # the baseline, JIRL's asks it at each of its 450 steps, PPO+IL's and TRPO+IL's imitation phase runs it for 2 episodes
+    expected = {"sac_continuous": 400 + 200 + 400, "jirl_sac_continuous": 400 + 200 + 400 + 450, "ppo_il": 400 + 200 + 400 + 400, "trpo_il": 1400}
+    assert len(calls) == expected[script]
     assert [i for i, fresh in enumerate(calls) if fresh == "1"] == list(range(0, len(calls), 200))
 
 
