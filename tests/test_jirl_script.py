@@ -356,11 +356,12 @@ def test_guidance_transitions_fade_after_the_hand_over(tmp_path, monkeypatch):
 
         return on_return
 
+    previous = sys.gettrace()  # a coverage run's tracer, say: put back after the run
     sys.settrace(trace)
     try:
         g = runpy.run_path(str(ROOT / "jirl_sac_continuous.py"), run_name="__main__")
     finally:
-        sys.settrace(None)
+        sys.settrace(previous)
     (run_dir,) = (tmp_path / "runs").iterdir()
     weights = scalars(run_dir)["charts/guidance_weight"]  # logged at steps 50, 100, ..., 450
     np.testing.assert_allclose(weights, [1, 1, 1, 1, 1, 1, 0.5, 0, 0])  # C = 0 from step 300
