@@ -213,6 +213,109 @@ def test_imitation_that_never_fits_is_a_clear_error(script, tmp_path):
     writer.close()
 
 
+class ScalarLog:
+    """The writer's add_scalar, kept in memory: key -> [(step, value), ...]."""
+
+    def __init__(self) -> None:
+        self.scalars: dict = {}
+
+    def add_scalar(self, key: str, value: float, step: int) -> None:
+        self.scalars.setdefault(key, []).append((step, value))
+
+
+@pytest.mark.parametrize("script", [ppo, trpo], ids=["ppo_il", "trpo_il"])
+def test_cloning_trains_on_nine_tenths_stops_on_the_other_tenth_and_keeps_its_best_epoch(script):
+    """Behaviour cloning never trains on its held-out tenth; each epoch takes every other step once, in a
+    new order; it stops --il-patience epochs after the best held-out error (or at once below
+    --il-target-mse) and keeps that best epoch's mean. The value is then fitted on every step."""
+    n = 60
+    data_rng = np.random.default_rng(1)
+    obs = data_rng.normal(size=(n, 3)).astype(np.float32)
+    obs[:, 0] = np.arange(n) / n  # names each row
+    actions = np.tanh(obs @ np.array([[1.5], [-0.8], [0.6]])).astype(np.float32)
+    returns = data_rng.normal(size=n).astype(np.float32)
+    order = np.random.default_rng(0).permutation(n)  # the split imitate draws from the same rng
+    held_out, fit = order[:6], order[6:]
+
+    calls = []  # (network, training?, rows), at every forward pass
+
+    def record(network):
+        return lambda module, inputs, output: calls.append((network, torch.is_grad_enabled(), [int(i) for i in torch.round(inputs[0][:, 0] * n)]))
+
+    torch.manual_seed(0)
+    agent = script.Agent(3, 1, 32)
+    agent.actor_mean.register_forward_hook(record("mean"))
+    agent.critic.register_forward_hook(record("critic"))
+    args = script.resolve_hyperparameters(script.Args(il_lr=0.03, il_batch_size=16, il_patience=3, il_target_mse=0.0,
+                                                      il_max_epochs=200, il_value_epochs=5, il_init_std=0.4))  # fmt: skip
+    log = ScalarLog()
+    result = script.imitate(agent, obs, actions, returns, args, log, np.random.default_rng(0))
+
+    held_out_mse = [value for _, value in log.scalars["il/action_mse"]]
+    epochs = len(held_out_mse)
+    assert [step for step, _ in log.scalars["il/action_mse"]] == list(range(1, epochs + 1)) and result["epochs"] == epochs
+    best = int(np.argmin(held_out_mse))
+    assert epochs == best + 1 + 3 < 200  # three epochs without a better held-out error end it
+    trained = [rows for network, training, rows in calls if network == "mean" and training]
+    checked = [rows for network, training, rows in calls if network == "mean" and not training]
+    assert [len(rows) for rows in trained] == [16, 16, 16, 6] * epochs
+    per_epoch = [sum(trained[4 * e : 4 * e + 4], []) for e in range(epochs)]
+    assert all(sorted(rows) == sorted(fit) for rows in per_epoch)  # the held-out rows never
+    assert all(a != b for a, b in zip(per_epoch, per_epoch[1:]))  # reshuffled every epoch
+    assert checked == [list(held_out)] * epochs
+    with torch.no_grad():
+        kept = ((agent.actor_mean(torch.from_numpy(obs[held_out])) - torch.from_numpy(actions[held_out])) ** 2).mean().item()
+    assert kept == pytest.approx(held_out_mse[best], rel=1e-6) == result["action_mse"]
+    assert held_out_mse[best] < held_out_mse[-1]
+    assert agent.actor_logstd.exp().item() == pytest.approx(0.4)
+    valued = [rows for network, training, rows in calls if network == "critic" and training]
+    assert [len(rows) for rows in valued] == [16, 16, 16, 12] * 5
+    per_value_epoch = [sum(valued[4 * e : 4 * e + 4], []) for e in range(5)]
+    assert all(sorted(rows) == list(range(n)) for rows in per_value_epoch)  # the held-out rows too
+    assert all(a != b for a, b in zip(per_value_epoch, per_value_epoch[1:]))
+
+    loose = script.resolve_hyperparameters(script.Args(il_target_mse=10.0, il_patience=3, il_value_epochs=1))
+    quick = script.imitate(script.Agent(3, 1, 32), obs, actions, returns, loose, ScalarLog(), np.random.default_rng(0))
+    assert quick["epochs"] == 1  # the first held-out error is already below the target
+
+
+@pytest.mark.parametrize("script", [ppo, trpo], ids=["ppo_il", "trpo_il"])
+def test_evaluation_replays_the_mean_action_on_the_saved_statistics_from_the_evaluation_seeds(script, tmp_path):
+    torch.manual_seed(0)
+    agent = script.Agent(3, 1, 16)
+    with torch.no_grad():
+        agent.actor_mean[4].weight.mul_(100.0)  # torques of about 1 N m, not the initial 0.01
+    obs_rms = script.RunningMeanStd((3,))
+    mean, var = np.array([0.5, -0.2, 1.0]), np.array([0.3, 0.6, 4.0])
+    obs_rms.mean, obs_rms.var = mean.copy(), var.copy()
+    path = tmp_path / "model.cleanrl_model"
+    script.save_checkpoint(str(path), "Pendulum-v1", script.make_env("Pendulum-v1", 0), agent, obs_rms, script.Args(hidden_size=16))
+    expected, torques = [], []
+    for i in range(2):  # written out: episode i from reset seed 7 + 1,000,000 + i, the mean action, 2 N m per policy unit
+        env = gym.make("Pendulum-v1")
+        obs, _ = env.reset(seed=7 + 1_000_000 + i)
+        episode_return, done = 0.0, False
+        while not done:
+            x = np.clip((obs - mean) / np.sqrt(var + 1e-8), -10.0, 10.0).astype(np.float32)
+            with torch.no_grad():
+                torque = 2.0 * agent.actor_mean(torch.from_numpy(x)).numpy()
+            obs, reward, terminated, truncated, _ = env.step(torque)
+            episode_return, done = episode_return + reward, terminated or truncated
+            torques.append(abs(torque[0]))
+        expected.append(episode_return)
+    assert np.median(torques) > 0.3
+    assert script.evaluate(str(path), "Pendulum-v1", 2, 7) == pytest.approx(expected, rel=1e-6)
+
+    saved = torch.load(path, weights_only=True)
+    for changed, message in [({"action_high": [3.0]}, "checkpoint action bounds differ from this env's Box(-2.0, 2.0, (1,), float32)"),
+                             ({"action_low": [-2.0, -2.0], "action_high": [2.0, 2.0]},  # bounds that would broadcast against Pendulum's
+                              "checkpoint expects 3 observations and 2 actions (Pendulum-v1); this env has 3 and 1")]:  # fmt: skip
+        torch.save({**saved, **changed}, tmp_path / "other.cleanrl_model")
+        with pytest.raises(ValueError) as raised:
+            script.evaluate(str(tmp_path / "other.cleanrl_model"), "Pendulum-v1", 1, 7)
+        assert str(raised.value) == message
+
+
 SHORT = {
     "ppo_il": ["--num-steps", "256", "--num-minibatches", "4", "--update-epochs", "2"],
     "trpo_il": ["--num-steps", "256", "--n-critic-updates", "2"],
@@ -253,13 +356,14 @@ def test_end_to_end_logs_saves_and_evaluates(name, tmp_path):
 
 
 @pytest.mark.parametrize("name", ["ppo_il", "trpo_il"])
-def test_norm_reward_fits_the_value_in_the_scaled_units(name, tmp_path):
-    """With --norm-reward the reward scale starts from the baseline's steps, and the cloned critic
-    predicts returns in those units, not in the env's (which would make RL's first advantages wrong)."""
+def test_normalisation_starts_from_the_baseline_steps_and_the_value_is_fitted_in_the_scaled_units(name, tmp_path):
+    """With --norm-obs and --norm-reward the observation statistics and the reward scale start from the
+    baseline's steps, and the cloned critic predicts returns in those units, not in the env's (which
+    would make RL's first advantages wrong)."""
     from envs import BASELINES, make_env
 
-    norm_reward = ["--norm-reward"] if name == "ppo_il" else ["--norm-reward", "True"]  # trpo_il's is Optional (tuned)
-    args = [*SHORT[name], *norm_reward, "--total-timesteps", "256", "--il-steps", "2000", "--il-max-epochs", "5",
+    on = [] if name == "ppo_il" else ["True"]  # trpo_il's are Optional (tuned)
+    args = [*SHORT[name], "--norm-obs", *on, "--norm-reward", *on, "--total-timesteps", "256", "--il-steps", "2000", "--il-max-epochs", "5",
             "--il-value-epochs", "100", "--save-model", "--eval-episodes", "1", "--baseline-eval-episodes", "1"]  # fmt: skip
     out = run_script(ROOT / f"{name}.py", args, tmp_path)
     assert out.returncode == 0, out.stderr
@@ -279,10 +383,14 @@ def test_norm_reward_fits_the_value_in_the_scaled_units(name, tmp_path):
     scale = np.std(running)
     assert scalars(run_dir)["il/reward_scale"] == [pytest.approx(scale, rel=1e-3)]
     cloned = script.load_checkpoint(str(next(run_dir.glob("*_cloned.cleanrl_model"))))
+    obs_array = np.array(obs_list, dtype=np.float64)
+    np.testing.assert_allclose(cloned["obs_mean"].numpy(), obs_array.mean(0), rtol=1e-6)  # the prior's count of 1e-4 is below that
+    np.testing.assert_allclose(cloned["obs_var"].numpy(), obs_array.var(0), rtol=1e-6)
     agent = script.Agent(3, 1, cloned["hidden_size"])
     agent.load_state_dict(cloned["agent"])
+    normalised = np.clip((obs_array - cloned["obs_mean"].numpy()) / np.sqrt(cloned["obs_var"].numpy() + 1e-8), -10.0, 10.0)
     with torch.no_grad():
-        predicted = agent.get_value(torch.tensor(np.array(obs_list), dtype=torch.float32))[:, 0].numpy()
+        predicted = agent.get_value(torch.tensor(normalised, dtype=torch.float32))[:, 0].numpy()
     target = np.array(returns) / scale
     assert abs(predicted.mean() - target.mean()) < 0.1 * abs(np.mean(returns) - target.mean())
     assert np.mean((predicted - target) ** 2) < 0.2 * np.var(target)
