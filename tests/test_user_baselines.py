@@ -220,6 +220,34 @@ def test_a_stateful_baseline_is_reset_before_every_episode_it_acts_in_and_at_no_
     assert [i for i, fresh in enumerate(calls) if fresh == "1"] == list(range(0, len(calls), 200))
 
 
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_the_baseline_is_measured_on_the_evaluation_seeds_and_the_unpaired_regret_is_against_it(script, tmp_path):
+    # the same reset seeds as eval/episodic_return's, so the two returns compare; none of them a training episode's
+    from envs import BASELINES, make_env
+    from envs.baselines import rollout
+
+    offset = load_script(script).EVAL_SEED_OFFSET
+    assert offset == 1_000_000
+    traces = [rollout(make_env("Pendulum-v1"), BASELINES["Pendulum-v1"], 1 + offset + i) for i in range(3)]
+    if script in ("ppo_il", "trpo_il"):
+        budget = ["--num-steps", "256", "--total-timesteps", "512", "--il-steps", "400", "--il-max-epochs", "5"]
+    else:
+        budget = ["--total-timesteps", "450", "--learning-starts", "300", "--batch-size", "16"]
+    args = ["--regret-estimator", "unpaired", "--baseline-eval-episodes", "3", "--hidden-size", "16", *budget]
+    out = run_script(ROOT / f"{script}.py", args, tmp_path)
+    assert out.returncode == 0, out.stderr
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    logged = scalars(run_dir)
+    per_step = sum(t.sum() for t in traces) / sum(len(t) for t in traces)
+    assert logged["charts/baseline_return"] == [pytest.approx(np.mean([t.sum() for t in traces]), rel=1e-6)]
+    assert logged["charts/baseline_reward_per_step"] == [pytest.approx(per_step, rel=1e-6)]
+    returns, lengths = np.array(logged["charts/episodic_return"]), np.array(logged["charts/episodic_length"])
+    assert len(returns) == 2 and lengths.tolist() == [200, 200]
+    # each episode's regret against a baseline earning its measured reward per step: max(0, b L - R)
+    np.testing.assert_allclose(logged["charts/baseline_regret"], np.cumsum(np.maximum(0.0, per_step * lengths - returns)), rtol=1e-5)
+    assert logged["charts/baseline_regret"][-1] > 0
+
+
 UNCLIPPED_ENV = """
 import gymnasium as gym
 import numpy as np
