@@ -169,6 +169,13 @@ def test_checkpoint_round_trip_and_errors(tmp_path, sac):
     with pytest.raises(ValueError, match="checkpoint expects 3 observations and 1 actions"):
         sac.actor_from_checkpoint(sac.load_checkpoint(str(path)), lander)
     saved = torch.load(path, weights_only=True)
+    for changed, message in [({"action_high": [3.0]}, "checkpoint action bounds differ from this env's Box(-2.0, 2.0, (1,), float32)"),
+                             ({"action_low": [-2.0, -2.0], "action_high": [2.0, 2.0]},  # bounds that would broadcast against Pendulum's
+                              "checkpoint expects 3 observations and 2 actions (Pendulum-v1); this env has 3 and 1")]:  # fmt: skip
+        torch.save({**saved, **changed}, tmp_path / "other_spaces.cleanrl_model")
+        with pytest.raises(ValueError) as raised:
+            sac.actor_from_checkpoint(sac.load_checkpoint(str(tmp_path / "other_spaces.cleanrl_model")), env)
+        assert str(raised.value) == message
     for key in ("actor", "hidden_size"):  # the right format tag, a part missing: named, not a KeyError later
         damaged = tmp_path / f"no_{key}.cleanrl_model"
         torch.save({k: v for k, v in saved.items() if k != key}, damaged)
