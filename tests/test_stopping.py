@@ -901,14 +901,18 @@ def test_checked_writer_says_a_failure_of_its_thread_once_and_drops_what_follows
     assert writer.failure == f"cannot write the logs to {tmp_path / 'logs'}: No such file or directory"
     assert handled == []  # the writing thread's OSError went to no other hook
 
-    def other_thread():
-        raise ValueError("not the writer's")
+    def other_thread(error):
+        raise error
 
-    thread = threading.Thread(target=other_thread)
-    thread.start()
-    thread.join()
-    assert [type(args.exc_value) for args in handled] == [ValueError]  # any other thread's error goes on as before
+    for error in (ValueError("not the writer's"), OSError(errno.EIO, "a user's reader thread")):  # an OSError too: not TensorBoard's thread
+        thread = threading.Thread(target=other_thread, args=(error,))
+        thread.start()
+        thread.join()
+    assert [type(args.exc_value) for args in handled] == [ValueError, OSError]  # any other thread's error goes on as before
+    reached = []
+    monkeypatch.setattr(tensorboard.SummaryWriter, "add_scalar", lambda *args, **kwargs: reached.append(args))
     writer.add_scalar("a", 3.0, 2)
+    assert reached == []  # dropped, not tried again
     writer.close()  # neither raises
     assert not (tmp_path / "logs").exists()
     assert threading.excepthook == handled.append  # the hook it found is back
