@@ -1,6 +1,7 @@
 """Shared test helpers: load an algorithm script as a module without running its main block; a full disk;
 the TensorBoard writers of a run ended in-process, closed; policies whose finite weights give a NaN or
-an infinite action; and a check that no test leaves a signal handler changed."""
+an infinite action; checkpoint spaces unlike Pendulum's; and a check that no test leaves a signal
+handler changed."""
 
 import builtins
 import errno
@@ -22,6 +23,13 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 torch.set_num_threads(1)
+
+# Saved spaces that differ from Pendulum-v1's, each with the line a script's loader must refuse it with:
+# an upper bound alone, and bounds for two actions, which would broadcast against Pendulum's one
+OTHER_PENDULUM_SPACES = [
+    ({"action_high": [3.0]}, "checkpoint action bounds differ from this env's Box(-2.0, 2.0, (1,), float32)"),
+    ({"action_low": [-2.0, -2.0], "action_high": [2.0, 2.0]}, "checkpoint expects 3 observations and 2 actions (Pendulum-v1); this env has 3 and 1"),
+]
 
 
 def load_script(name: str):
