@@ -9,6 +9,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
+from gymnasium.envs.classic_control.pendulum import PendulumEnv
 
 from conftest import ROOT, load_script
 from test_sac_script import run_script, scalars
@@ -362,10 +363,17 @@ def test_a_malformed_baseline_spec_is_a_one_line_error_naming_the_form(script, s
     assert str(raised.value) == f"baseline {spec!r} must look like 'module:function' (an absolute module name, one colon)"
 
 
+# Pendulum never terminates. Its episodes here end at this many steps, far beyond the limit a test sets, which must
+# stop them first: a script without its guard then fails the test instead of hanging it.
+BACKSTOP = 10_000
+
+
+def long_pendulum() -> gym.Env:
+    return gym.wrappers.TimeLimit(PendulumEnv(), BACKSTOP)
+
+
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_a_baseline_episode_that_never_ends_is_an_error_not_a_hang(script, monkeypatch):
-    from gymnasium.envs.classic_control.pendulum import PendulumEnv
-
     from envs.pendulum import pendulum_swing_up
 
     module = load_script(script)
@@ -373,10 +381,10 @@ def test_a_baseline_episode_that_never_ends_is_an_error_not_a_hang(script, monke
     _, rewards = module.baseline_rollout(gym.wrappers.TimeLimit(PendulumEnv(), 50), pendulum_swing_up, 0)
     assert len(rewards) == 50  # an episode as long as the limit is fine
     with pytest.raises(ValueError, match=r"^the baseline's episode from reset seed 3 did not end within 50 steps; give the env a time limit"):
-        module.baseline_rollout(PendulumEnv(), pendulum_swing_up, 3)  # no TimeLimit, and Pendulum never terminates
+        module.baseline_rollout(long_pendulum(), pendulum_swing_up, 3)
     if script in ("ppo_il", "trpo_il"):  # the imitation phase's rollouts
         with pytest.raises(ValueError, match="did not end within 50 steps; imitation needs whole episodes"):
-            module.collect_baseline_data(PendulumEnv(), pendulum_swing_up, 100, 0, 0.99)
+            module.collect_baseline_data(long_pendulum(), pendulum_swing_up, 100, 0, 0.99)
 
 
 def test_jirl_names_every_flag_an_endless_baseline_episode_needs(tmp_path):
@@ -394,17 +402,17 @@ def test_jirl_names_every_flag_an_endless_baseline_episode_needs(tmp_path):
 
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_an_evaluation_episode_that_never_ends_is_an_error_not_a_hang(script, tmp_path, monkeypatch):
-    if "EndlessPendulum-v0" not in gym.registry:  # Pendulum without a time limit: it never terminates
-        gym.register("EndlessPendulum-v0", entry_point="gymnasium.envs.classic_control.pendulum:PendulumEnv")
+    if "LongPendulum-v0" not in gym.registry:
+        gym.register("LongPendulum-v0", entry_point="gymnasium.envs.classic_control.pendulum:PendulumEnv", max_episode_steps=BACKSTOP)
     module = load_script(script)
     monkeypatch.setattr(module, "EPISODE_LIMIT", 200)  # Pendulum-v1's own time limit
-    env, path = module.make_env("EndlessPendulum-v0", 0), str(tmp_path / "policy.cleanrl_model")
+    env, path = module.make_env("LongPendulum-v0", 0), str(tmp_path / "policy.cleanrl_model")
     if script in ("ppo_il", "trpo_il"):
-        module.save_checkpoint(path, "EndlessPendulum-v0", env, module.Agent(3, 1, 16), None, module.Args(hidden_size=16))
+        module.save_checkpoint(path, "LongPendulum-v0", env, module.Agent(3, 1, 16), None, module.Args(hidden_size=16))
     else:
-        module.save_checkpoint(path, "EndlessPendulum-v0", env, module.Actor(3, 1, 16), module.SoftQNetwork(3, 1, 16), module.Args(hidden_size=16))
+        module.save_checkpoint(path, "LongPendulum-v0", env, module.Actor(3, 1, 16), module.SoftQNetwork(3, 1, 16), module.Args(hidden_size=16))
     with pytest.raises(ValueError, match=r"^evaluation episode 0 did not end within 200 steps; give the env a time limit \(max_episode_steps\)$"):
-        module.evaluate(path, "EndlessPendulum-v0", 2, 1)
+        module.evaluate(path, "LongPendulum-v0", 2, 1)
     assert module.evaluate(path, "Pendulum-v1", 1, 1)[0] < 0  # an episode as long as the limit is fine
 
 
