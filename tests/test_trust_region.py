@@ -284,7 +284,7 @@ def test_evaluation_replays_the_mean_action_on_the_saved_statistics_from_the_eva
     torch.manual_seed(0)
     agent = script.Agent(3, 1, 16)
     with torch.no_grad():
-        agent.actor_mean[4].weight.mul_(100.0)  # torques of about 1 N m, not the initial 0.01
+        agent.actor_mean[4].weight.mul_(100.0)  # torques of 0.6 N m (the median), not the initial 0.01
     obs_rms = script.RunningMeanStd((3,))
     mean, var = np.array([0.5, -0.2, 1.0]), np.array([0.3, 0.6, 4.0])
     obs_rms.mean, obs_rms.var = mean.copy(), var.copy()
