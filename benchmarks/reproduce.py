@@ -455,15 +455,31 @@ def _mean(points: list) -> float:
 
 
 def reward_per_step_curve(scalars: dict, grid: np.ndarray, window: int = 5) -> np.ndarray:
-    """Each episode's reward per step, smoothed over `window` episodes, interpolated onto `grid` steps."""
+    """Each episode's reward per step, averaged over the `window` episodes centred on it, interpolated
+    onto `grid` steps. Near a run's first and last episodes the average is over the episodes there are:
+    padded with zeros (convolve's "same"), a run's ends bent towards 0."""
     returns, lengths = scalars.get("charts/episodic_return", []), scalars.get("charts/episodic_length", [])
     if not returns:
         return np.full(len(grid), np.nan)
     steps = np.array([s for s, _ in returns], dtype=float)
     per_step = np.array([r / max(length, 1.0) for (_, r), (_, length) in zip(returns, lengths)])
-    kernel = np.ones(min(window, len(per_step))) / min(window, len(per_step))
-    smooth = np.convolve(per_step, kernel, mode="same")
+    kernel = np.ones(min(window, len(per_step)))
+    smooth = np.convolve(per_step, kernel, mode="same") / np.convolve(np.ones(len(per_step)), kernel, mode="same")
     return np.interp(grid, steps, smooth, left=np.nan, right=np.nan)
+
+
+def mean_band(curves: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per grid point, the mean of the seeds' curves and the half-width of its 95 % confidence interval
+    (Student t on the seeds that have a value there, as in the table: 1.96 would be an 81 % band
+    with 3 seeds); NaN where fewer than two have one."""
+    from scipy import stats
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # grid points before a run's first episode are NaN
+        counts = np.sum(~np.isnan(curves), 0)
+        mean = np.nanmean(curves, 0)
+        half = stats.t.ppf(0.975, counts - 1) * np.nanstd(curves, 0, ddof=1) / np.sqrt(counts)
+    return mean, np.where(counts >= 2, half, np.nan)
 
 
 def figures(results: dict, output: Path) -> list[Path]:
@@ -478,14 +494,9 @@ def figures(results: dict, output: Path) -> list[Path]:
         grid = np.linspace(0, horizon, 200)
         fig, ax = plt.subplots(figsize=(7, 4))
         for method, runs in methods.items():
-            curves = np.array([reward_per_step_curve(s, grid) for s in runs.values()])
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)  # grid points before a run's first episode are NaN
-                mean = np.nanmean(curves, 0)
-                half = 1.96 * np.nanstd(curves, 0, ddof=1) / math.sqrt(len(curves)) if len(curves) > 1 else None
+            mean, half = mean_band(np.array([reward_per_step_curve(s, grid) for s in runs.values()]))
             (line,) = ax.plot(grid, mean, label=LABELS[method])
-            if half is not None:
-                ax.fill_between(grid, mean - half, mean + half, alpha=0.2, color=line.get_color())
+            ax.fill_between(grid, mean - half, mean + half, alpha=0.2, color=line.get_color())  # none where NaN (one seed)
         level = np.nanmean([last(s, "charts/baseline_reward_per_step") for runs in methods.values() for s in runs.values()])
         ax.axhline(level, color="k", linestyle="--", label="baseline")
         ax.set_xlabel("environment steps (PPO/TRPO+IL: after their imitation phase)")

@@ -4,6 +4,7 @@ import math
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +21,7 @@ JIRL_PHASES = {1: (100.0, 50.0, 0.0), 2: (120.0, 30.0, 10.0), 3: (80.0, 40.0, 5.
 TOTALS = {"sac": {1: 2000.0, 2: 2400.0, 3: 1900.0}, "ppo_il": {1: 900.0, 2: 800.0, 3: 1000.0}, "trpo_il": {1: 1500.0, 2: 1600.0, 3: 1400.0}}
 
 
-def write_run(workdir, env, method, seed, total, phases=None, rollout=None):
+def write_run(workdir, env, method, seed, total, phases=None, rollout=None, evaluated=True):
     folder = reproduce.run_dir(workdir, env, method, seed)
     writer = SummaryWriter(str(folder / "runs" / f"{env}__{method}__{seed}"))
     if rollout is not None:  # PPO/TRPO+IL log SPS at the end of each whole rollout
@@ -30,15 +31,16 @@ def write_run(workdir, env, method, seed, total, phases=None, rollout=None):
         writer.add_scalar("charts/episodic_return", -100.0 if step < 6 else -50.0, step * 100)
         writer.add_scalar("charts/episodic_length", 100, step * 100)
         writer.add_scalar("charts/rl_control_fraction", step / 10, step * 100)
-    writer.add_scalar("charts/baseline_regret_per_step", total, 1000)
-    writer.add_scalar("charts/baseline_regret", total / 2, 1000)
-    writer.add_scalar("charts/baseline_return", -80.0, 0)
+    for step, share in ((500, 0.25), (1000, 1.0)):  # logged as it accumulates: the report takes the last value
+        writer.add_scalar("charts/baseline_regret_per_step", share * total, step)
+        writer.add_scalar("charts/baseline_regret", share * total / 2, step)
+        for name, value in zip(("0_50", "50_100", "100"), phases or ()):
+            writer.add_scalar(f"phases/baseline_regret_per_step_{name}", share * value, step)
+            writer.add_scalar(f"phases/baseline_regret_{name}", share * value / 2, step)
+    writer.add_scalar("charts/baseline_return", -80.0 - seed, 0)  # measured once per seed, alike for every method
     writer.add_scalar("charts/baseline_reward_per_step", -0.8, 0)
-    for i, value in enumerate([-40.0 - seed, -60.0 - seed]):
+    for i, value in enumerate([-40.0 - seed, -60.0 - seed] if evaluated else []):
         writer.add_scalar("eval/episodic_return", value, i)
-    for name, value in zip(("0_50", "50_100", "100"), phases or ()):
-        writer.add_scalar(f"phases/baseline_regret_per_step_{name}", value, 1000)
-        writer.add_scalar(f"phases/baseline_regret_{name}", value / 2, 1000)
     writer.close()
     (folder / "DONE").write_text("synthetic\n")
 
@@ -64,11 +66,75 @@ def test_table_and_figures_on_synthetic_logs(tmp_path):
     assert f"p = {p_value:.3g}" in cells[9]
     assert "### Accumulated baseline regret, per episode" in text
     eval_row = [line for line in text.splitlines() if line.startswith("| Pendulum-v1")][-1]
-    assert eval_row.count("-52 ± 2") == 4 and eval_row.strip().endswith("-80 ± 0 |")  # seeds: -51, -52, -53; baseline
+    # seeds' means -51, -52, -53 for every method and the baseline's -81, -82, -83: one value per seed, not one per run
+    assert eval_row.count("-52 ± 2") == 4 and eval_row.strip().endswith(f"-82 ± {stats.t.ppf(0.975, 2) / math.sqrt(3):,.0f} |")
     paths = reproduce.figures(results, tmp_path)
     assert paths[0].exists() and paths[0].stat().st_size > 10_000
     curve = reproduce.reward_per_step_curve(results["Pendulum-v1"]["sac"][1], np.array([150.0, 950.0]), window=1)
     np.testing.assert_allclose(curve, [-1.0, -0.5])
+
+
+def test_the_curves_average_the_episodes_there_are_and_their_bands_are_student_t():
+    """Episodes of -1 per step then of -0.5, five each. Averaged over 3 episodes, the first and last
+    are means of two (they were padded with a zero: -0.67 and -0.33, a run's ends bent towards 0)."""
+    scalars = {"charts/episodic_return": [(100 * i, -100.0 if i < 6 else -50.0) for i in range(1, 11)],
+               "charts/episodic_length": [(100 * i, 100) for i in range(1, 11)]}  # fmt: skip
+    curve = reproduce.reward_per_step_curve(scalars, np.array([100.0, 500.0, 600.0, 1000.0, 1100.0]), window=3)
+    np.testing.assert_allclose(curve, [-1.0, (-1 - 1 - 0.5) / 3, (-1 - 0.5 - 0.5) / 3, -0.5, np.nan])
+    # three seeds' curves; one has no value at the third point (no episode yet), two none at the fourth
+    curves = np.array([[1.0, 2.0, np.nan, np.nan], [3.0, 4.0, 5.0, np.nan], [5.0, 9.0, 7.0, 8.0]])
+    mean, half = reproduce.mean_band(curves)
+    np.testing.assert_allclose(mean, [3.0, 5.0, 6.0, 8.0])
+    expected = [stats.t.ppf(0.975, 2) * 2 / math.sqrt(3), stats.t.ppf(0.975, 2) * math.sqrt(13) / math.sqrt(3),
+                stats.t.ppf(0.975, 1) * math.sqrt(2) / math.sqrt(2), np.nan]  # fmt: skip
+    np.testing.assert_allclose(half, expected)  # 1.96 in place of t(0.975, 2) = 4.30 made the bands less than half as wide
+
+
+def test_a_report_of_two_seeds_leaves_out_unfinished_runs_and_missing_values(tmp_path):
+    """A workdir partly done: two seeds of every method, a third JIRL seed killed (its logs stay, its DONE
+    never came), one SAC run that was not evaluated, and an env on which JIRL's regret is 0."""
+    for env in ("Pendulum-v1", "LunarLanderContinuous-v3"):
+        for seed in (1, 2):
+            phases = JIRL_PHASES[seed] if env == "Pendulum-v1" else (0.0, 0.0, 0.0)
+            write_run(tmp_path, env, "jirl", seed, sum(phases), phases)
+            for method, totals in TOTALS.items():
+                write_run(tmp_path, env, method, seed, totals[seed], evaluated=(env, method, seed) != ("Pendulum-v1", "sac", 2))
+    write_run(tmp_path, "Pendulum-v1", "jirl", 3, 10_000.0, (10_000.0, 0.0, 0.0))
+    (reproduce.run_dir(tmp_path, "Pendulum-v1", "jirl", 3) / "DONE").unlink()
+    results = reproduce.collect(tmp_path, ["Pendulum-v1", "LunarLanderContinuous-v3"], list(reproduce.SCRIPTS), [1, 2, 3])
+    assert sorted(results["Pendulum-v1"]["jirl"]) == [1, 2]  # the killed run is not read
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # one value is reported without an interval, not with numpy's warnings
+        text = reproduce.table(results)
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in text.splitlines() if line.startswith(("| Pendulum", "| Lunar"))]
+    pendulum, lander = rows[0], rows[1]  # the per-step form
+
+    def ci(values):  # mean ± t(0.975, n - 1) sd / sqrt(n), as the table rounds
+        return f"{np.mean(values):,.0f} ± {stats.t.ppf(0.975, len(values) - 1) * np.std(values, ddof=1) / math.sqrt(len(values)):,.0f}"
+
+    assert pendulum[1:5] == [ci([100, 120]), ci([50, 30]), ci([0, 10]), ci([150, 160])]
+    assert pendulum[5:7] == [ci([2000, 2400]), f"{ci([900, 800])} (PPO+IL)"]
+    assert pendulum[7:9] == [f"{2200 / 155:.1f}×", f"{850 / 155:.1f}×"]
+    p_value = stats.ttest_rel([150, 160], [900, 800], alternative="less").pvalue
+    assert pendulum[9] == f"p = {p_value:.3g} (PPO+IL, 2 seeds)"  # two seeds are enough for a paired test
+    assert lander[4] == "0 ± 0" and lander[7:9] == ["–", "–"]  # no ratio to a regret of 0
+    evaluation = rows[4]
+    assert evaluation[0] == "Pendulum-v1" and evaluation[2] == "-51"  # SAC: seed 1's mean alone, without an interval
+    assert evaluation[1] == ci([-51, -52]) and evaluation[5] == ci([-81, -82])
+    assert text.strip().endswith("Mean ± 95 % confidence interval over seeds [1, 2].")
+
+
+def test_a_training_asked_for_after_a_stop_never_starts(tmp_path):
+    """A worker that reaches its run after Ctrl-C or SIGTERM has stopped the others (the pool had already
+    handed it out) must not start a training that nothing would end."""
+    import signal
+
+    trainings, mark = reproduce.Trainings(), tmp_path / "started"
+    trainings.stop()
+    code = reproduce.run_one([sys.executable, "-c", f"open({str(mark)!r}, 'w').close()"], str(tmp_path / "run"), trainings)
+    assert code == -signal.SIGTERM and not mark.exists() and not (tmp_path / "run" / "DONE").exists()
+    assert reproduce.run_one([sys.executable, "-c", f"open({str(mark)!r}, 'w').close()"], str(tmp_path / "run"), reproduce.Trainings()) == 0
+    assert mark.exists() and (tmp_path / "run" / "DONE").exists()  # the same run, not stopped
 
 
 def test_budget_names_the_steps_ppo_and_trpo_ran_in_whole_rollouts(tmp_path):
