@@ -478,8 +478,8 @@ def mean_band(curves: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         warnings.simplefilter("ignore", RuntimeWarning)  # grid points before a run's first episode are NaN
         counts = np.sum(~np.isnan(curves), 0)
         mean = np.nanmean(curves, 0)
-        half = stats.t.ppf(0.975, counts - 1) * np.nanstd(curves, 0, ddof=1) / np.sqrt(counts)
-    return mean, np.where(counts >= 2, half, np.nan)
+        half = stats.t.ppf(0.975, counts - 1) * np.nanstd(curves, 0, ddof=1) / np.sqrt(counts)  # t has no quantile below 1 degree: NaN
+    return mean, half
 
 
 def figures(results: dict, output: Path) -> list[Path]:
