@@ -456,8 +456,8 @@ def _mean(points: list) -> float:
 
 def reward_per_step_curve(scalars: dict, grid: np.ndarray, window: int = 5) -> np.ndarray:
     """Each episode's reward per step, averaged over the `window` episodes centred on it, interpolated
-    onto `grid` steps. Near a run's first and last episodes the average is over the episodes there are:
-    padded with zeros (convolve's "same"), a run's ends bent towards 0."""
+    onto `grid` steps. Near a run's first and last episodes the average is over the episodes there are;
+    convolve's "same" alone pads with zeros, which bent a run's ends towards 0."""
     returns, lengths = scalars.get("charts/episodic_return", []), scalars.get("charts/episodic_length", [])
     if not returns:
         return np.full(len(grid), np.nan)
