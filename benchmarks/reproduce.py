@@ -470,15 +470,16 @@ def reward_per_step_curve(scalars: dict, grid: np.ndarray, window: int = 5) -> n
 
 def mean_band(curves: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per grid point, the mean of the seeds' curves and the half-width of its 95 % confidence interval
-    (Student t on the seeds that have a value there, as in the table: 1.96 would be an 81 % band
-    with 3 seeds); NaN where fewer than two have one."""
+    (Student t, as in the table: 1.96 would be an 81 % band with 3 seeds). Both are NaN wherever a seed
+    has no value yet or any more: a mean over the seeds that have one jumps where a run ends, and a t
+    band over two of three seeds is 3.6 times as wide for the same spread. The band is NaN with a single seed."""
     from scipy import stats
 
+    seeds = curves[~np.isnan(curves).all(1)]  # a run that logged no episode has no curve to average
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # grid points before a run's first episode are NaN
-        counts = np.sum(~np.isnan(curves), 0)
-        mean = np.nanmean(curves, 0)
-        half = stats.t.ppf(0.975, counts - 1) * np.nanstd(curves, 0, ddof=1) / np.sqrt(counts)  # t has no quantile below 1 degree: NaN
+        warnings.simplefilter("ignore", RuntimeWarning)  # no seed, or one: NaN, which draws nothing
+        mean = seeds.mean(0)
+        half = stats.t.ppf(0.975, len(seeds) - 1) * seeds.std(0, ddof=1) / np.sqrt(len(seeds))
     return mean, half
 
 
@@ -496,7 +497,7 @@ def figures(results: dict, output: Path) -> list[Path]:
         for method, runs in methods.items():
             mean, half = mean_band(np.array([reward_per_step_curve(s, grid) for s in runs.values()]))
             (line,) = ax.plot(grid, mean, label=LABELS[method])
-            ax.fill_between(grid, mean - half, mean + half, alpha=0.2, color=line.get_color())  # none where NaN (one seed)
+            ax.fill_between(grid, mean - half, mean + half, alpha=0.2, color=line.get_color())  # none where NaN
         level = np.nanmean([last(s, "charts/baseline_reward_per_step") for runs in methods.values() for s in runs.values()])
         ax.axhline(level, color="k", linestyle="--", label="baseline")
         ax.set_xlabel("environment steps (PPO/TRPO+IL: after their imitation phase)")

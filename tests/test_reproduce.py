@@ -81,13 +81,18 @@ def test_the_curves_average_the_episodes_there_are_and_their_bands_are_student_t
                "charts/episodic_length": [(100 * i, 100) for i in range(1, 11)]}  # fmt: skip
     curve = reproduce.reward_per_step_curve(scalars, np.array([100.0, 500.0, 600.0, 1000.0, 1100.0]), window=3)
     np.testing.assert_allclose(curve, [-1.0, (-1 - 1 - 0.5) / 3, (-1 - 0.5 - 0.5) / 3, -0.5, np.nan])
-    # three seeds' curves; one has no value at the third point (no episode yet), two none at the fourth
-    curves = np.array([[1.0, 2.0, np.nan, np.nan], [3.0, 4.0, 5.0, np.nan], [5.0, 9.0, 7.0, 8.0]])
-    mean, half = reproduce.mean_band(curves)
-    np.testing.assert_allclose(mean, [3.0, 5.0, 6.0, 8.0])
-    expected = [stats.t.ppf(0.975, 2) * 2 / math.sqrt(3), stats.t.ppf(0.975, 2) * math.sqrt(13) / math.sqrt(3),
-                stats.t.ppf(0.975, 1) * math.sqrt(2) / math.sqrt(2), np.nan]  # fmt: skip
-    np.testing.assert_allclose(half, expected)  # 1.96 in place of t(0.975, 2) = 4.30 made the bands less than half as wide
+    # three seeds' curves, one with no value at the third point, two none at the fourth (their runs had
+    # ended), and a run that logged no episode: mean and band only where all three have a value
+    curves = np.array([[1.0, 2.0, np.nan, np.nan], [3.0, 4.0, 5.0, np.nan], [5.0, 9.0, 7.0, 8.0], [np.nan] * 4])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mean, half = reproduce.mean_band(curves)
+        one_mean, one_half = reproduce.mean_band(curves[2:])
+    np.testing.assert_allclose(mean, [3.0, 5.0, np.nan, np.nan])  # a mean of 6 then 8 there would jump where the runs end
+    t = stats.t.ppf(0.975, 2)  # 4.30; 1.96 made the bands less than half as wide
+    np.testing.assert_allclose(half, [t * 2 / math.sqrt(3), t * math.sqrt(13) / math.sqrt(3), np.nan, np.nan])
+    np.testing.assert_allclose(one_mean, curves[2])  # a single seed: its curve, with no band
+    assert np.isnan(one_half).all()
 
 
 def test_a_report_of_two_seeds_leaves_out_unfinished_runs_and_missing_values(tmp_path):
