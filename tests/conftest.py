@@ -28,6 +28,7 @@ torch.set_num_threads(1)
 # an upper bound alone, and bounds for two actions, which would broadcast against Pendulum's one
 OTHER_PENDULUM_SPACES = [
     ({"action_high": [3.0]}, "checkpoint action bounds differ from this env's Box(-2.0, 2.0, (1,), float32)"),
+    ({"action_low": [-3.0]}, "checkpoint action bounds differ from this env's Box(-2.0, 2.0, (1,), float32)"),
     ({"action_low": [-2.0, -2.0], "action_high": [2.0, 2.0]}, "checkpoint expects 3 observations and 2 actions (Pendulum-v1); this env has 3 and 1"),
 ]
 

@@ -169,11 +169,6 @@ def test_checkpoint_round_trip_and_errors(tmp_path, sac):
     with pytest.raises(ValueError, match="checkpoint expects 3 observations and 1 actions"):
         sac.actor_from_checkpoint(sac.load_checkpoint(str(path)), lander)
     saved = torch.load(path, weights_only=True)
-    for changed, message in OTHER_PENDULUM_SPACES:
-        torch.save({**saved, **changed}, tmp_path / "other_spaces.cleanrl_model")
-        with pytest.raises(ValueError) as raised:
-            sac.actor_from_checkpoint(sac.load_checkpoint(str(tmp_path / "other_spaces.cleanrl_model")), env)
-        assert str(raised.value) == message
     for key in ("actor", "hidden_size"):  # the right format tag, a part missing: named, not a KeyError later
         damaged = tmp_path / f"no_{key}.cleanrl_model"
         torch.save({k: v for k, v in saved.items() if k != key}, damaged)
@@ -196,6 +191,11 @@ def test_another_scripts_checkpoint_is_named_with_its_format_and_run(tmp_path, l
         with pytest.raises(ValueError) as raised:
             script.load_checkpoint(str(path))
         assert str(raised.value) == f"{path} is a {found} file{origin}, not a {script.CHECKPOINT_FORMAT} checkpoint"
+    path = tmp_path / "odd_run.pt"  # a run name that is no name is left out, not printed
+    other = next(found for found in others if found != script.CHECKPOINT_FORMAT)
+    torch.save({"format": other, "args": {"exp_name": 7}}, path)
+    with pytest.raises(ValueError, match=f"^{path} is a {other} file, not a {script.CHECKPOINT_FORMAT} checkpoint$"):
+        script.load_checkpoint(str(path))
     foreign = tmp_path / "foreign.pt"  # a format of no script here keeps the plain message
     torch.save({"format": "sb3-policy"}, foreign)
     with pytest.raises(ValueError, match=f"^{foreign} is not a {script.CHECKPOINT_FORMAT} checkpoint$"):
@@ -214,6 +214,9 @@ def test_a_checkpoint_holding_a_value_no_sound_checkpoint_holds_is_damaged_in_on
         script.save_checkpoint(str(path), "Pendulum-v1", env, script.Agent(3, 1, 8), script.RunningMeanStd((3,)), script.Args(hidden_size=8))
     saved = torch.load(path, weights_only=True)
     last = list(saved[weights])[-1]  # a flaw in the last tensor: every one is checked, not the first alone
+    matrix = max(saved[weights], key=lambda name: saved[weights][name].numel())  # one NaN among finite weights is a flaw too
+    one_nan = saved[weights][matrix].clone()
+    one_nan.view(-1)[-1] = float("nan")
     nan, unnamed = f"its {weights} holds a NaN or infinite weight", f"its {weights} holds an entry that is not a named tensor"
     cases = [("hidden_size", "8", "its hidden_size is '8'"), ("hidden_size", 0, "its hidden_size is 0"),
              ("obs_dim", 3.0, "its obs_dim is 3.0"), ("obs_dim", True, "its obs_dim is True"),
@@ -222,7 +225,8 @@ def test_a_checkpoint_holding_a_value_no_sound_checkpoint_holds_is_damaged_in_on
              ("action_high", [2.0, 2.0], "its action_high is [2.0, 2.0]"), ("action_high", ["2"], "its action_high is ['2']"),
              (weights, [1, 2], f"its {weights} is [1, 2]"), (weights, {**saved[weights], last: [0.0]}, unnamed),
              (weights, {**saved[weights], last: torch.full_like(saved[weights][last], float("nan"))}, nan),
-             (weights, {**saved[weights], last: saved[weights][last] * float("inf")}, nan), (weights, {**saved[weights], 7: torch.zeros(1)}, unnamed)]  # fmt: skip
+             (weights, {**saved[weights], last: saved[weights][last] * float("inf")}, nan), (weights, {**saved[weights], 7: torch.zeros(1)}, unnamed),
+             (weights, {**saved[weights], matrix: one_nan}, nan)]  # fmt: skip
     if weights == "agent":  # the observation statistics: both or neither, one per observation, finite, a variance >= 0
         cases += [("obs_var", -torch.ones(3), "its obs_var is tensor([-1., -1., -1.])"),
                   ("obs_mean", torch.zeros(5), "its obs_mean is tensor([0., 0., 0., 0., 0.])"), ("obs_mean", None, "its obs_mean is None"),
@@ -234,6 +238,15 @@ def test_a_checkpoint_holding_a_value_no_sound_checkpoint_holds_is_damaged_in_on
         with pytest.raises(ValueError) as raised:  # without the check: a TypeError, a numpy error, or NaN blamed on the env
             script.evaluate(str(damaged), "Pendulum-v1", 1, 0)
         assert str(raised.value) == f"{damaged} is a damaged {script.CHECKPOINT_FORMAT} checkpoint: {damage}", (key, value)
+    torch.save({k: v for k, v in saved.items() if k not in ("obs_dim", "args")}, damaged)  # every part missing is named
+    with pytest.raises(ValueError) as raised:
+        script.evaluate(str(damaged), "Pendulum-v1", 1, 0)
+    assert str(raised.value) == f"{damaged} is a damaged {script.CHECKPOINT_FORMAT} checkpoint: it has no obs_dim, args"
+    for changed, message in OTHER_PENDULUM_SPACES:  # sound, but made for other spaces than this env's
+        torch.save({**saved, **changed}, tmp_path / "other_spaces.cleanrl_model")
+        with pytest.raises(ValueError) as raised:
+            script.evaluate(str(tmp_path / "other_spaces.cleanrl_model"), "Pendulum-v1", 1, 0)
+        assert str(raised.value) == message
     assert len(script.evaluate(str(path), "Pendulum-v1", 1, 0)) == 1
     overflowing = {name: w.clone() for name, w in saved[weights].items()}  # finite weights whose action is not: sound, and refused as it acts
     if weights == "actor":
@@ -281,6 +294,8 @@ def test_a_damaged_file_is_a_one_line_error_that_never_advises_weights_only_fals
         assert message.startswith(f"{path} is not ") and message.endswith(cause), message
         assert "\n" not in message and "weights_only" not in message, message
         assert path.read_bytes() == data
+    with pytest.raises(FileNotFoundError):  # no file is not a damaged one: the OS error names the path
+        load(str(tmp_path / "no_such.pt"))
 
 
 @pytest.mark.parametrize(
