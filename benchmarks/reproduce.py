@@ -472,7 +472,7 @@ def mean_band(curves: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per grid point, the mean of the seeds' curves and the half-width of its 95 % confidence interval
     (Student t, as in the table: 1.96 would be an 81 % band with 3 seeds). Both are NaN wherever a seed
     has no value yet or any more: a mean over the seeds that have one jumps where a run ends, and a t
-    band over two of three seeds is 3.6 times as wide for the same spread. The band is NaN with a single seed."""
+    band over two of three seeds is 3.6 times as wide for the same spread. With one seed, no band."""
     from scipy import stats
 
     seeds = curves[~np.isnan(curves).all(1)]  # a run that logged no episode has no curve to average

@@ -25,7 +25,8 @@ if str(ROOT) not in sys.path:
 torch.set_num_threads(1)
 
 # Saved spaces that differ from Pendulum-v1's, each with the line a script's loader must refuse it with:
-# an upper bound alone, and bounds for two actions, which would broadcast against Pendulum's one
+# an upper bound alone, a lower bound alone, and bounds for two actions, which would broadcast against
+# Pendulum's one
 OTHER_PENDULUM_SPACES = [
     ({"action_high": [3.0]}, "checkpoint action bounds differ from this env's Box(-2.0, 2.0, (1,), float32)"),
     ({"action_low": [-3.0]}, "checkpoint action bounds differ from this env's Box(-2.0, 2.0, (1,), float32)"),
