@@ -101,7 +101,7 @@ class Args:
     vf_coef: float = 0.5
     """coefficient of the value function"""
     max_grad_norm: float = 0.5
-    """the maximum norm for the gradient clipping"""
+    """the maximum norm for the gradient clipping (inf: no clipping)"""
     target_kl: Optional[float] = None
     """stop the epochs of a rollout early past this approximate KL"""
     norm_obs: bool = False
@@ -155,7 +155,7 @@ class Args:
             ("clip_coef", 0.0 < self.clip_coef < math.inf, "> 0"),
             ("ent_coef", self.ent_coef is None or 0.0 <= self.ent_coef < math.inf, ">= 0"),
             ("vf_coef", 0.0 <= self.vf_coef < math.inf, ">= 0"),
-            ("max_grad_norm", 0.0 < self.max_grad_norm <= math.inf, "> 0"),
+            ("max_grad_norm", 0.0 < self.max_grad_norm <= math.inf, "in (0, inf]"),
             ("target_kl", self.target_kl is None or 0.0 < self.target_kl < math.inf, "> 0"),
             ("hidden_size", self.hidden_size >= 1, ">= 1"),
             ("il_steps", self.il_steps >= 1, ">= 1"),
