@@ -225,21 +225,34 @@ def test_a_script_copied_alone_names_a_missing_package_too(script, monkeypatch):
         module.make_env("NoSuchEnv-v9", 0)
 
 
+SPACES_THE_NETWORKS_CANNOT_USE = {  # name: (observation space, action space, the message's end)
+    "MatrixActions-v0": ((4,), ((2, 3), -1.0, 1.0), r"has a Box\(-1.0, 1.0, \(2, 3\), float32\) action space; this script needs a flat continuous"),
+    "HalfBoundedActions-v0": ((4,), ((2,), -1.0, np.array([1.0, np.inf], dtype=np.float32)), r"has an unbounded action space Box\(-1.0, \[ 1. inf\], \(2,\), float32\);"),
+    "ImageObservations-v0": ((4, 4), ((1,), -1.0, 1.0), r"has observations Box\(-1.0, 1.0, \(4, 4\), float32\); this script needs a flat Box"),
+}
+
+
 @pytest.mark.parametrize("script", ["sac_continuous", "jirl_sac_continuous", "ppo_il", "trpo_il"])
-def test_a_matrix_action_space_is_refused(script):
+@pytest.mark.parametrize("env_id", list(SPACES_THE_NETWORKS_CANNOT_USE))
+def test_a_space_the_networks_cannot_use_is_refused(script, env_id):
+    """A matrix of actions (the networks' act_dim would be 2, the env wants 6), an action bound at
+    infinity in one dimension alone (the squashed or clipped action has nowhere to map to), and an
+    image observation (the MLPs take a vector) are each refused, naming the space."""
     import gymnasium as gym
 
-    class MatrixActions(gym.Env):  # a Box action of shape (2, 3): the networks' act_dim would be 2, the env wants 6
-        observation_space = gym.spaces.Box(-1.0, 1.0, shape=(4,))
-        action_space = gym.spaces.Box(-1.0, 1.0, shape=(2, 3))
+    obs_shape, (act_shape, low, high), message = SPACES_THE_NETWORKS_CANNOT_USE[env_id]
+
+    class Spaces(gym.Env):
+        observation_space = gym.spaces.Box(-1.0, 1.0, shape=obs_shape)
+        action_space = gym.spaces.Box(low, high, shape=act_shape)
 
         def __init__(self, render_mode=None):
             self.render_mode = render_mode
 
-    if "MatrixActions-v0" not in gym.registry:
-        gym.register("MatrixActions-v0", entry_point=MatrixActions)
-    with pytest.raises(ValueError, match=r"has a Box\(-1.0, 1.0, \(2, 3\), float32\) action space; this script needs a flat continuous"):
-        load_script(script).make_env("MatrixActions-v0", 0)
+    if env_id not in gym.registry:
+        gym.register(env_id, entry_point=Spaces)
+    with pytest.raises(ValueError, match=f"^{env_id} {message}"):
+        load_script(script).make_env(env_id, 0)
 
 
 def test_an_episode_that_never_ends_is_an_error_not_a_hang(monkeypatch):

@@ -42,6 +42,8 @@ def test_check_baseline_action(script):
         with pytest.raises(ValueError, match="expected 1 finite number"):
             check(bad, space)
     assert check([[1.0, 2.0]], gym.spaces.Box(-5, 5, shape=(2,))).shape == (2,)
+    with pytest.raises(ValueError, match="expected 2 finite number"):  # one dimension's NaN is enough
+        check([1.0, np.nan], gym.spaces.Box(-5, 5, shape=(2,)))
     # beyond the bounds: clipped to them, as the agent's action always is
     assert check(3.0, space)[0] == 2.0 and check(np.array([-7.0], dtype=np.float32), space).tolist() == [-2.0]
     assert check(np.array([-7.0], dtype=np.float32), space).dtype == np.float32
@@ -320,6 +322,19 @@ def make_env_of(script: str, fallback: bool, monkeypatch):
 
 
 @pytest.mark.parametrize("script, fallback", EVERY_MAKE_ENV)
+def test_make_env_seeds_the_action_space_as_cleanrl_does(script, fallback, monkeypatch):
+    """The scripts draw their own random actions, but an env or wrapper that samples its action space
+    (a random disturbance) repeats with the run's seed, also in a script copied alone."""
+    make_env = make_env_of(script, fallback, monkeypatch)
+    draws = []
+    for seed in (5, 5, 6):
+        env = make_env("Pendulum-v1", seed)
+        draws.append(env.action_space.sample())
+        env.close()
+    assert draws[0] == draws[1] != draws[2]
+
+
+@pytest.mark.parametrize("script, fallback", EVERY_MAKE_ENV)
 def test_an_env_id_whose_module_does_not_import_is_a_one_line_error(script, fallback, monkeypatch):
     make_env = make_env_of(script, fallback, monkeypatch)
     with pytest.raises(ValueError, match=r"^env id 'no_such_module:Env-v0' needs a module that does not import: No module named 'no_such_module'"):
@@ -385,6 +400,23 @@ def test_a_baseline_episode_that_never_ends_is_an_error_not_a_hang(script, monke
     if script in ("ppo_il", "trpo_il"):  # the imitation phase's rollouts
         with pytest.raises(ValueError, match="did not end within 50 steps; imitation needs whole episodes"):
             module.collect_baseline_data(long_pendulum(), pendulum_swing_up, 100, 0, 0.99)
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_baseline_that_only_intervenes_cannot_be_measured_or_imitated_and_says_so(script):
+    """None (no intervention) has no action to apply: the measurement names it, with the flag that
+    skips it, instead of reporting None as a malformed action; so does the imitation phase."""
+    module, calls = load_script(script), []
+
+    def after_three_steps(obs):
+        calls.append(obs)
+        return None if len(calls) > 3 else np.zeros(1)
+
+    with pytest.raises(ValueError, match=r"^the baseline returned None \(it only intervenes\), so it cannot be measured; use --regret-estimator off$"):
+        module.baseline_rollout(gym.wrappers.TimeLimit(PendulumEnv(), 200), after_three_steps, 0)
+    if script in ("ppo_il", "trpo_il"):
+        with pytest.raises(ValueError, match=r"^the baseline returned None \(it only intervenes\); imitation needs its actions everywhere$"):
+            module.collect_baseline_data(gym.wrappers.TimeLimit(PendulumEnv(), 200), lambda obs: None, 100, 0, 0.99)
 
 
 def test_jirl_names_every_flag_an_endless_baseline_episode_needs(tmp_path):
