@@ -1,9 +1,11 @@
 """Every command the documentation prints is one its program accepts. A user copies them from README.md,
 BENCHMARKS.md, docs/ and the benchmarks' docstrings; an option renamed or a rule tightened in code, and
 not in the text, would fail there, after the setup, for the first user who tries. Each command is parsed
-by its own program (tests/parse_only.py) and stops there: nothing trains."""
+by its own program (tests/parse_only.py) and stops there: nothing trains. The README's tables of
+defaults are checked against the scripts' Args too."""
 
 import ast
+import dataclasses
 import itertools
 import json
 import re
@@ -12,7 +14,7 @@ import subprocess
 import sys
 from collections.abc import Sequence
 
-from conftest import ROOT
+from conftest import ROOT, load_script
 
 DOCUMENTS = ["README.md", "BENCHMARKS.md", *sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "docs").rglob("*.md"))]
 PROGRAMS = sorted(p.relative_to(ROOT).as_posix() for folder in (".", "benchmarks", "envs", "deploy") for p in (ROOT / folder).glob("*.py"))
@@ -101,3 +103,45 @@ def test_a_command_its_program_would_refuse_is_refused_with_its_own_words():
     assert "unrecognized arguments: --seedz" in said[4]
     assert said[5] == "the program ended without parsing its arguments"
     assert said[len(bad) :] == [None, None]
+
+
+def option_rows(section: str) -> list[tuple[list[str], list[str]]]:
+    """(flags, defaults) of each row of the first option table after the README's heading `section`."""
+    text = (ROOT / "README.md").read_text().split(section, 1)[1]
+    rows = []
+    for line in text.split("| option | default | meaning |", 1)[1].splitlines()[2:]:
+        if not line.startswith("|"):
+            break
+        flags, defaults = line.split(" | ")[:2]
+        rows.append((re.findall(r"`(--[\w-]+)", flags), [d.strip() for d in defaults.split(", ")]))
+    return rows
+
+
+def test_the_readmes_option_tables_give_each_scripts_defaults():
+    """Each default the tables of `sac_continuous.py` and `jirl_sac_continuous.py` state is the one its
+    Args holds: a number, on or off for a flag (`--x / --no-x`, or `--no-use-x` for use_x), or a
+    quoted value. A default the table gives in words (the env's own baseline, half the budget) must
+    be an unset one in Args: '' or None."""
+    read = 0
+    for section, script in (("### `sac_continuous.py` options", "sac_continuous"), ("### `jirl_sac_continuous.py`: what JIRL adds", "jirl_sac_continuous")):
+        defaults = {f.name: f.default for f in dataclasses.fields(load_script(script).Args)}
+        rows = option_rows(section)
+        assert len(rows) >= 10, rows
+        for flags, stated in rows:
+            flags = [f for f in flags if not f.startswith("--no-") or f.startswith("--no-use-")]  # `--autotune / --no-autotune` is one
+            assert len(flags) == len(stated), (flags, stated)
+            for flag, text in zip(flags, stated):
+                name = flag.removeprefix("--no-use-").removeprefix("--").replace("-", "_")
+                name = f"use_{name}" if flag.startswith("--no-use-") else name
+                value = defaults[name]
+                if text in ("on", "off"):
+                    assert value is (text == "on"), (flag, text, value)
+                elif re.fullmatch(r"[−-]?[\d.]+(e-?\d+)?", text):
+                    assert float(text.replace("−", "-")) == value, (flag, text, value)
+                elif re.fullmatch(r"`[^`]+`", text):
+                    assert text.strip("`") == value, (flag, text, value)
+                else:  # in words: the env's own, your default entity, half of `--total-timesteps`
+                    assert value in ("", None), (flag, text, value)
+                    continue
+                read += 1
+    assert read >= 30, read
