@@ -69,8 +69,7 @@ def number(text: str, kind: type):
 
 
 # Rules that are not a bound or an interval, each checked at its edges by a test of its own below.
-RULES_OF_THEIR_OWN = {("trpo_il", "num_steps"), ("deploy Run", "watchdog_ms"), ("deploy Baseline", "watchdog_ms"), ("deploy Train", "watchdog_ms"),
-                      ("deploy Run", "min_throttle"), ("deploy Baseline", "min_throttle"), ("deploy Train", "min_throttle")}
+RULES_OF_THEIR_OWN = {("trpo_il", "num_steps"), *((f"deploy {mode}", name) for mode in ("Run", "Baseline", "Train") for name in ("watchdog_ms", "min_throttle"))}
 
 
 @pytest.mark.parametrize("label", list(ARG_CLASSES))

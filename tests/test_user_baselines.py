@@ -414,6 +414,7 @@ def test_a_baseline_that_only_intervenes_cannot_be_measured_or_imitated_and_says
 
     with pytest.raises(ValueError, match=r"^the baseline returned None \(it only intervenes\), so it cannot be measured; use --regret-estimator off$"):
         module.baseline_rollout(gym.wrappers.TimeLimit(PendulumEnv(), 200), after_three_steps, 0)
+    assert len(calls) == 4, "three steps applied, the fourth call's None named"
     if script in ("ppo_il", "trpo_il"):
         with pytest.raises(ValueError, match=r"^the baseline returned None \(it only intervenes\); imitation needs its actions everywhere$"):
             module.collect_baseline_data(gym.wrappers.TimeLimit(PendulumEnv(), 200), lambda obs: None, 100, 0, 0.99)
