@@ -105,15 +105,14 @@ def test_a_command_its_program_would_refuse_is_refused_with_its_own_words():
     assert said[len(bad) :] == [None, None]
 
 
-def option_rows(section: str) -> list[tuple[list[str], list[str]]]:
-    """(flags, defaults) of each row of the first option table after the README's heading `section`."""
-    text = (ROOT / "README.md").read_text().split(section, 1)[1]
+def readme_table(section: str, header: str) -> list[list[str]]:
+    """The cells of each row of the first table with this header after the README's heading `section`."""
+    text = (ROOT / "README.md").read_text().split(section, 1)[1].split(header, 1)[1]
     rows = []
-    for line in text.split("| option | default | meaning |", 1)[1].splitlines()[2:]:
+    for line in text.splitlines()[2:]:  # the header's end, then its |---| line
         if not line.startswith("|"):
             break
-        flags, defaults = line.split(" | ")[:2]
-        rows.append((re.findall(r"`(--[\w-]+)", flags), [d.strip() for d in defaults.split(", ")]))
+        rows.append([cell.strip() for cell in re.split(r"(?<!\\)\|", line)[1:-1]])  # `\|` is a pipe inside a cell
     return rows
 
 
@@ -125,9 +124,10 @@ def test_the_readmes_option_tables_give_each_scripts_defaults():
     read = 0
     for section, script in (("### `sac_continuous.py` options", "sac_continuous"), ("### `jirl_sac_continuous.py`: what JIRL adds", "jirl_sac_continuous")):
         defaults = {f.name: f.default for f in dataclasses.fields(load_script(script).Args)}
-        rows = option_rows(section)
+        rows = readme_table(section, "| option | default | meaning |")
         assert len(rows) >= 10, rows
-        for flags, stated in rows:
+        for cells in rows:
+            flags, stated = re.findall(r"`(--[\w-]+)", cells[0]), cells[1].split(", ")
             flags = [f for f in flags if not f.startswith("--no-") or f.startswith("--no-use-")]  # `--autotune / --no-autotune` is one
             assert len(flags) == len(stated), (flags, stated)
             for flag, text in zip(flags, stated):
@@ -145,3 +145,24 @@ def test_the_readmes_option_tables_give_each_scripts_defaults():
                     continue
                 read += 1
     assert read >= 30, read
+
+
+def test_the_readmes_hyperparameter_table_is_what_the_scripts_resolve():
+    """Each row of the README's table of PPO+IL's and TRPO+IL's defaults, read back from the Args the
+    script resolves for that env ('other': an env RL Zoo has no values for)."""
+    ppo, trpo = load_script("ppo_il"), load_script("trpo_il")
+    rows = readme_table("### `ppo_il.py` and `trpo_il.py`", "| script | env | rollout |")
+    assert len(rows) == 6, rows
+    for script, env_id, rollout, gamma, gae_lambda, epochs, minibatch, lr, other in rows:
+        module = ppo if script == "`ppo_il.py`" else trpo
+        args = module.resolve_hyperparameters(module.Args(env_id="MountainCarContinuous-v0" if env_id == "other" else env_id))
+        if module is ppo:
+            resolved_other = f"ent_coef {args.ent_coef}" if args.ent_coef else ""
+            resolved = (args.num_steps, args.update_epochs, args.num_steps // args.num_minibatches, args.learning_rate, "")
+        else:
+            normalised = ", obs and reward normalisation" if args.norm_obs and args.norm_reward else ""
+            resolved_other = f"max KL {args.max_kl}{normalised}"
+            resolved = (args.num_steps, args.n_critic_updates, args.critic_batch_size, args.learning_rate, " (critic)")
+        read = (int(rollout), int(epochs), int(minibatch), float(lr.removesuffix(" (critic)")), lr[len(lr.split()[0]):])
+        assert read == resolved and (float(gamma), float(gae_lambda)) == (args.gamma, args.gae_lambda), (script, env_id)
+        assert other == resolved_other, (script, env_id)

@@ -481,26 +481,6 @@ def test_zoo_hyperparameters_fill_only_what_the_user_left_unset():
     assert (args.gamma, args.n_critic_updates) == (0.99, 10)
 
 
-def test_the_readmes_hyperparameter_table_is_what_the_scripts_resolve():
-    """Each row of the README's table of PPO+IL's and TRPO+IL's defaults, read back from the Args the
-    script resolves for that env ('other': an env RL Zoo has no values for)."""
-    rows = [line.split("|")[1:-1] for line in (ROOT / "README.md").read_text().splitlines() if line.startswith(("| `ppo_il.py` |", "| `trpo_il.py` |"))]
-    assert len(rows) == 6, rows
-    for script, env_id, rollout, gamma, gae_lambda, epochs, minibatch, lr, other in (map(str.strip, row) for row in rows):
-        module = ppo if script == "`ppo_il.py`" else trpo
-        args = module.resolve_hyperparameters(module.Args(env_id="MountainCarContinuous-v0" if env_id == "other" else env_id))
-        if module is ppo:
-            resolved_other = f"ent_coef {args.ent_coef}" if args.ent_coef else ""
-            resolved = (args.num_steps, args.update_epochs, args.num_steps // args.num_minibatches, args.learning_rate, "")
-        else:
-            normalised = ", obs and reward normalisation" if args.norm_obs and args.norm_reward else ""
-            resolved_other = f"max KL {args.max_kl}{normalised}"
-            resolved = (args.num_steps, args.n_critic_updates, args.critic_batch_size, args.learning_rate, " (critic)")
-        read = (int(rollout), int(epochs), int(minibatch), float(lr.removesuffix(" (critic)")), lr[len(lr.split()[0]):])
-        assert read == resolved and (float(gamma), float(gae_lambda)) == (args.gamma, args.gae_lambda), (script, env_id)
-        assert other == resolved_other, (script, env_id)
-
-
 def test_unset_ppo_minibatches_hold_64_steps_of_the_rollout_the_user_set():
     # RL Zoo's 4096 / 64, 16384 / 256 and CleanRL's 2048 / 32 are all minibatches of 64 steps
     expected = {"Pendulum-v1": 64, "LunarLanderContinuous-v3": 256, "MountainCarContinuous-v0": 32}
