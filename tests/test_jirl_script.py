@@ -12,7 +12,7 @@ from scipy import stats
 
 from conftest import ROOT, load_script
 from envs.pendulum import pendulum_swing_up
-from test_sac_script import TINY, run_script, scalars
+from test_sac_script import TINY, readme_keys, run_script, scalars
 
 jirl = load_script("jirl_sac_continuous")
 
@@ -184,6 +184,7 @@ def test_end_to_end_logs_gate_and_regret(tmp_path):
     for key in keys:
         assert key in logged, key
         assert np.all(np.isfinite(logged[key])), key
+    assert set(logged) - readme_keys() == set(), "keys the README does not name"
     assert logged["gate/c"][-1] == 0.0, "C annealed to 0 over --guidance-steps"
     assert logged["charts/rl_control_fraction"][-1] > logged["charts/rl_control_fraction"][0]
     phases = sum(logged[f"phases/baseline_regret_per_step_{p}"][-1] for p in ("0_50", "50_100", "100"))
@@ -288,6 +289,7 @@ def test_script_copied_alone_runs_with_a_user_baseline(tmp_path):
     (run_dir,) = (tmp_path / "runs").iterdir()
     logged = scalars(run_dir)
     assert "charts/rl_control_fraction" in logged and "charts/baseline_regret_per_step" in logged
+    assert "gate/guidance_progress" in logged and set(logged) - readme_keys() == set(), "the earned schedule's keys, all in the README"
 
 
 @pytest.mark.parametrize("estimator", ["paired", "unpaired"])

@@ -2,6 +2,7 @@
 
 import errno
 import os
+import re
 import runpy
 import shutil
 import subprocess
@@ -24,6 +25,15 @@ TINY = ["--hidden-size", "32", "--batch-size", "32", "--log-every", "50"]
 
 def run_script(script: Path, args: list[str], cwd: Path, env: dict | None = None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, str(script), *args], cwd=cwd, capture_output=True, text=True, env=env)
+
+
+def readme_keys() -> set[str]:
+    """Every TensorBoard key the README names (`group/name`, with `{a,b}` spelled out)."""
+    keys = set()
+    for key in re.findall(r"`((?:charts|losses|eval|gate|phases|il)/[\w{},]+)`", (ROOT / "README.md").read_text()):
+        head, _, rest = key.partition("{")
+        keys |= {head + choice + rest.partition("}")[2] for choice in rest.partition("}")[0].split(",")} if rest else {key}
+    return keys
 
 
 def scalars(run_dir: Path) -> dict[str, list[float]]:
@@ -121,6 +131,7 @@ def test_end_to_end_logs_saves_and_evaluates(tmp_path, sac):
     ]:  # fmt: skip
         assert key in logged, key
         assert np.all(np.isfinite(logged[key])), key
+    assert set(logged) - readme_keys() == set(), "keys the README does not name"
     assert len(logged["charts/episodic_return"]) == 2 and len(logged["eval/episodic_return"]) == 2
     # regret is cumulative and the untrained agent is worse than the swing-up baseline
     assert logged["charts/baseline_regret"][1] >= logged["charts/baseline_regret"][0] > 0

@@ -13,7 +13,7 @@ from gymnasium.envs.classic_control.pendulum import PendulumEnv
 from torch.func import functional_call
 
 from conftest import ROOT, load_script
-from test_sac_script import run_script, scalars
+from test_sac_script import readme_keys, run_script, scalars
 
 trpo = load_script("trpo_il")
 ppo = load_script("ppo_il")
@@ -326,6 +326,7 @@ def test_end_to_end_logs_saves_and_evaluates(name, tmp_path):
                 "il/action_mse", "il/env_steps", "il/eval_return", "eval/episodic_return"]:  # fmt: skip
         assert key in logged, key
         assert np.all(np.isfinite(logged[key])), key
+    assert set(logged) - readme_keys() == set(), "keys the README does not name"
     assert logged["il/env_steps"] == [600.0]
     assert len(logged["charts/SPS"]) == 2  # 700 steps round down to two whole rollouts of 256
     model = next(p for p in run_dir.glob("*.cleanrl_model") if not p.name.endswith("_cloned.cleanrl_model"))
