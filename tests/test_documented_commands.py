@@ -6,6 +6,7 @@ defaults are checked against the scripts' Args too."""
 
 import ast
 import dataclasses
+import inspect
 import itertools
 import json
 import re
@@ -166,3 +167,59 @@ def test_the_readmes_hyperparameter_table_is_what_the_scripts_resolve():
         read = (int(rollout), int(epochs), int(minibatch), float(lr.removesuffix(" (critic)")), lr[len(lr.split()[0]):])
         assert read == resolved and (float(gamma), float(gae_lambda)) == (args.gamma, args.gae_lambda), (script, env_id)
         assert other == resolved_other, (script, env_id)
+
+
+def readme_section(heading: str) -> str:
+    """The README's text under this `## ` heading, up to the next one, its lines joined by spaces."""
+    text = (ROOT / "README.md").read_text().split(f"\n{heading}\n", 1)[1]
+    return " ".join(text.split("\n## ", 1)[0].split())
+
+
+def stated(text: str, pattern: str) -> list[tuple[float, ...]]:
+    """The numbers each match of `pattern` captures in `text` (`2,000`, `10k`, `−10`), at least one match."""
+    matches = [tuple(float(g.replace(",", "").replace("−", "-").replace("k", "e3")) for g in m.groups()) for m in re.finditer(pattern, text)]
+    assert matches, f"the README no longer says {pattern!r}"
+    return matches
+
+
+def test_the_readmes_car_sections_state_the_defaults_in_code():
+    """The figures the sections on JetRacerTrack-v0 and on deploy/ give in prose are the code's defaults:
+    the track, the car's dynamics and camera, the observation, the reward and time limit, the throttle
+    window; the car's control rate, training pauses, JIRL settings, hand-over horizon, watchdog and
+    camera timeout. No table holds them, so nothing else would notice one changed on one side only."""
+    import gymnasium as gym
+
+    from deploy import jetracer, link, mock_controller
+    from envs import car_interface, jetracer_track  # importing envs registers JetRacerTrack-v0
+
+    env_defaults = {k: p.default for k, p in inspect.signature(jetracer_track.JetRacerTrackEnv.__init__).parameters.items()}
+    spec, car, mapping = env_defaults["track"], env_defaults["car"], env_defaults["mapping"]
+    sim = readme_section("## JetRacerTrack-v0: the lane-following car in simulation")
+    (rows, cols), crop = car_interface.MASK_SHAPE, car_interface.CROP_TOP
+    claims = [
+        (sim, r"two ([\d.]*\d) m straights, bends of ([\d.]*\d) m radius on the centre line, a ([\d.]*\d) m dark lane", (spec.straight_length, spec.radius, spec.lane_width)),
+        (sim, r"wheelbase ([\d.]*\d) m\) with first-order lags on steering \(([\d.]*\d) s\) and speed \(([\d.]*\d) s\)", (car.wheelbase, car.steering_lag, car.speed_lag)),
+        (sim, r"stepped at (\d+) Hz", (env_defaults["control_hz"],)),
+        (sim, r"\((\d+)×(\d+) BGR, the top (\d+) rows cropped", (*car_interface.FRAME_SHAPE[:2], crop)),
+        (sim, r"(\d+)×(\d+) mask", (rows, cols)),
+        (sim, r"\((\d+) numbers;", (car_interface.OBS_SIZE,)),
+        (sim, r"in the paper's ([\d.]*\d)–([\d.]*\d) window", (mapping.min_throttle, mapping.max_throttle)),
+        (sim, r"progress \(m\) × (\d+) per step; (−\d+) and termination", (env_defaults["progress_reward"], env_defaults["off_track_reward"])),
+        (sim, r"truncation after (\d+) steps \((\d+) s\)", (gym.spec("JetRacerTrack-v0").max_episode_steps, gym.spec("JetRacerTrack-v0").max_episode_steps / env_defaults["control_hz"])),
+    ]
+    common, train, hp = jetracer.Common(), jetracer.Train(), jetracer.car_jirl_defaults()
+    real = readme_section("## deploy/: the real car")
+    watchdogs = {common.watchdog_ms, inspect.signature(link.HostLink.__init__).parameters["watchdog_ms"].default, 1000 * mock_controller.MockController().watchdog_period}
+    claims += [
+        (real, r"JIRL's gate, penalized reward and switch penalty .{0,80} at (\d+) Hz", (common.control_hz,)),
+        (real, r"Every (\d+) steps the car is stopped for (\d+) gradient steps", (train.train_every, train.gradient_steps)),
+        (real, r"car settings as defaults: (\d+) units, batch (\d+), buffer (\d+k), K = (\d+), σ² = ([\d.]*\d)", (hp.hidden_size, hp.batch_size, hp.buffer_size, hp.gate_k, hp.penalty_sigma2)),
+        (real, r"half of `--total-steps` \(([\d,]+) of the paper's ([\d,]+)\)", (train.total_steps // 2, train.total_steps)),
+        (real, r"on the (\d+) latest stored observations", (jetracer.OVERFLOW_ROWS,)),
+        (real, r"no fresh camera frame has come for (\d+) s", (jetracer.CAMERA_LOST_S,)),
+        (real, r"The controller's watchdog \((\d+) ms\)", (*watchdogs,)),
+    ]
+    for text, pattern, expected in claims:
+        assert all(found == expected for found in stated(text, pattern)), (pattern, stated(text, pattern), expected)
+    # the entropy coefficient: tuned on the car, from the script's own starting value
+    assert hp.autotune and stated(real, r"The entropy coefficient is tuned from the script's ([\d.]*\d)") == [(hp.alpha,)] == [(load_script("jirl_sac_continuous").Args().alpha,)]
