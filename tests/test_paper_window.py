@@ -1,6 +1,8 @@
 """benchmarks/paper_window.py: the end of the paper's Table I window, on curves whose answer is known."""
 
+import os
 import sys
+import time
 
 import pytest
 from torch.utils.tensorboard import SummaryWriter
@@ -42,6 +44,11 @@ def test_the_window_ends_where_jirl_catches_up():
     assert paper_window.window_end(JIRL, SAC, t_100=3_050, episodes=2, tolerance=0.0) == 3_200
     assert paper_window.window_end(JIRL, SAC, t_100=None, episodes=2, tolerance=0.0) is None
     assert paper_window.window_end([(s, -500.0) for s, _ in JIRL], SAC, t_100=0, episodes=2, tolerance=0.1) is None
+    # "at least SAC's mean less the tolerance": a tie counts, at either tolerance
+    assert paper_window.window_end([(s, -200.0) for s, _ in JIRL], SAC, t_100=0, episodes=2, tolerance=0.0) == 200
+    assert paper_window.window_end([(s, -300.0) for s, _ in JIRL], SAC, t_100=0, episodes=2, tolerance=0.5) == 200
+    # an episode that ends at T_100's step is at or after the hand-over
+    assert paper_window.window_end(JIRL, SAC, t_100=3_000, episodes=2, tolerance=0.0) == 3_000
 
 
 def test_a_sustained_window_ends_where_jirl_stays_similar():
@@ -109,6 +116,7 @@ def test_the_command_reads_the_logs_and_pairs_the_seeds(tmp_path, capsys):
     # T_end 2,200 (episode 11): JIRL 110, SAC 1,100 over the same steps, 3,000 over its run
     assert "| 1 | 2,000 | 2,200 | 0 | 0 | 110 | 110 | 1,100 | 3,000 | 10.0× | 27.3× | 300 | 10.0× |" in out
     assert "| 1 | 2,000 | 2,200 | 0 | 0 | 330 | 330 | 3,300 | 9,000 | 10.0× | 27.3× | 900 | 10.0× |" in out
+    assert "| median | | | | | | 110 | 1,100 | 3,000 | 10.0× | 27.3× | 300 | 10.0× |" in out  # one seed: its own figures
     assert "| 2 |" not in out
     write_run(tmp_path / "sac", "Pendulum-v1__sac__2__100", sac)
     paper_window.main(["--jirl", str(tmp_path / "jirl"), "--sac", str(tmp_path / "sac"), "--episodes", "2", "--seeds", "2"])
@@ -120,11 +128,22 @@ def test_the_command_reads_the_logs_and_pairs_the_seeds(tmp_path, capsys):
     assert "to the end of the run" in out and "| 1 | 2,000 | 2,200 | 0 | 0 | 110 | 110 | 1,100 |" in out
 
 
-def test_the_command_refuses_bad_input(tmp_path):
+def test_a_seed_run_twice_is_read_from_its_newest_run(tmp_path):
+    now = time.time()
+    for name, age in (("Pendulum-v1__jirl__1__200", 100), ("Pendulum-v1__jirl__1__100", 0), ("Pendulum-v1__jirl__2__300", 50)):
+        (tmp_path / "runs" / name).mkdir(parents=True)
+        os.utime(tmp_path / "runs" / name, (now - age, now - age))
+    runs = paper_window.runs_by_seed(tmp_path)
+    assert {seed: run.name for seed, run in runs.items()} == {1: "Pendulum-v1__jirl__1__100", 2: "Pendulum-v1__jirl__2__300"}
+
+
+def test_the_command_refuses_bad_input(tmp_path, capsys):
     with pytest.raises(SystemExit, match="no runs under"):
         paper_window.main(["--jirl", str(tmp_path), "--sac", str(tmp_path)])
-    with pytest.raises(SystemExit):
-        paper_window.main(["--jirl", str(tmp_path), "--sac", str(tmp_path), "--tolerance", "-1"])
+    for option, message in ((["--tolerance", "-1"], "--tolerance must be >= 0, got -1.0"), (["--episodes", "0"], "--episodes must be >= 1, got 0")):
+        with pytest.raises(SystemExit):
+            paper_window.main(["--jirl", str(tmp_path), "--sac", str(tmp_path), *option])
+        assert message in capsys.readouterr().err  # refused as parsed, not for the runs it then lacks
     returns = [(200, -200.0)]
     write_run(tmp_path / "jirl", "Pendulum-v1__jirl__1__100", scalars(returns, [(200, 1.0)], [(200, 1.0)]))
     write_run(tmp_path / "sac", "Pendulum-v1__sac__1__100", {"charts/episodic_return": returns})  # --regret-estimator off

@@ -1,6 +1,8 @@
-"""benchmarks/regret_floor.py: the paired regret of a fixed policy, against numbers computed here; the
-benchmark tools refusing counts out of range, and ending their child process on SIGTERM."""
+"""benchmarks/regret_floor.py: the paired regret of a fixed policy, against numbers computed here;
+benchmarks/learning.py's table from the logs; the benchmark tools refusing counts out of range, and
+ending their child process on SIGTERM."""
 
+import dataclasses
 import sys
 
 import gymnasium as gym
@@ -58,6 +60,26 @@ def test_a_weaker_policy_against_an_independent_computation():
 def test_the_floor_over_a_budget():
     floor = regret_floor.Floor(-150.0, -230.0, 2.0, 10.0, 0.4, 200.0)
     assert floor.over(280_000) == pytest.approx((2_800.0, 14_000.0))
+    assert floor.over(300) == pytest.approx((3.0, 15.0))  # a budget of 1.5 episodes: not rounded to whole ones
+
+
+def test_the_floor_of_episodes_of_unequal_lengths(monkeypatch):
+    """Episodes that end early (a lander that crashes): each is paired with the baseline's from its reset
+    seed, zero after the shorter one ends, and the episodes of a budget are counted by the policy's
+    mean length (5 here; the median would be 3)."""
+
+    def policy(obs):
+        raise AssertionError("rollout is scripted here")
+
+    def baseline(obs):
+        raise AssertionError("rollout is scripted here")
+
+    episodes = {policy: ([1.0, 1.0], [8.0] * 3, [0.0] * 10), baseline: ([2.0, 0.0, 3.0], [2.0] * 3, [0.5] * 10)}
+    monkeypatch.setattr(regret_floor, "rollout", lambda env, actor, seed: np.array(episodes[actor][seed - 40]))
+    floor = regret_floor.measure("Pendulum-v1", policy, baseline, episodes=3, seed_offset=40)
+    # episode form: max(0, 5 - 2), max(0, 6 - 24), max(0, 5 - 0); per step: [1, 0, 3] summed, 0, 10 * 0.5
+    assert dataclasses.astuple(floor) == pytest.approx((26 / 3, 16 / 3, 8 / 3, 9 / 3, 2 / 3, 5.0))
+    assert floor.over(1_000) == pytest.approx((200 * 8 / 3, 200 * 3.0))
 
 
 def test_a_checkpoint_acts_with_its_mean_action_in_env_units(tmp_path, sac):
@@ -89,7 +111,7 @@ def test_a_corrupt_checkpoint_is_reported_and_the_rest_still_run(tmp_path, monke
 
 
 @pytest.mark.parametrize("option, message", [(["--episodes", "0"], "--episodes must be at least 1"),
-                                             (["--budget-steps", "-5"], "--budget-steps must be at least 0")])
+                                             (["--budget-steps", "-1"], "--budget-steps must be at least 0")])
 def test_counts_out_of_range_are_refused(monkeypatch, capsys, option, message):
     monkeypatch.setattr(sys, "argv", ["regret_floor.py", *option, "x.cleanrl_model"])
     with pytest.raises(SystemExit):
@@ -103,6 +125,46 @@ def test_learning_stops_at_a_failed_seed_with_one_line(monkeypatch, tmp_path):
     monkeypatch.setattr(sys, "argv", ["learning.py", "--seeds", "1", "--total-timesteps", "0", "--workdir", str(tmp_path)])
     with pytest.raises(SystemExit, match="learning: error: seed 1 failed"):
         learning.main()
+
+
+def test_learning_tabulates_the_newest_run_of_each_seed(monkeypatch, tmp_path, capsys):
+    """Each seed's row: the mean of its evaluation episodes and the last value of each chart, read from
+    the run the script just wrote (an older run of the same seed is left alone); then the median and the
+    mean with its confidence interval over the seeds."""
+    import os
+    import subprocess
+    import time
+
+    import learning
+    from torch.utils.tensorboard import SummaryWriter
+
+    commands = []
+
+    def train(cmd, cwd, stdout):  # stands for the script: logs what a finished run logs
+        commands.append(cmd)
+        seed = int(cmd[cmd.index("--seed") + 1])
+        for name, scale, age in ((f"Pendulum-v1__jirl_sac_continuous_bench__{seed}__5", 1.0, 0), (f"Pendulum-v1__jirl_sac_continuous_bench__{seed}__9", 7.0, 100)):
+            writer = SummaryWriter(str(cwd / "runs" / name))
+            for value in (-100.0 * seed, -100.0 * seed - 30.0, -100.0 * seed + 60.0):
+                writer.add_scalar("eval/episodic_return", scale * value, 0)
+            for step, base, regret, per_step, control, sps in ((100, -500.0, 1.0, 2.0, 0.0, 10.0), (200, -200.0, 10.0 * seed, 30.0 * seed, 0.2 * seed, 40.0 + seed)):
+                for tag, value in (("baseline_return", base), ("baseline_regret", regret), ("baseline_regret_per_step", per_step), ("rl_control_fraction", control), ("SPS", sps)):
+                    writer.add_scalar(f"charts/{tag}", scale * value, step)
+            writer.close()
+            os.utime(cwd / "runs" / name, (time.time() - age, time.time() - age))
+        return subprocess.CompletedProcess(cmd, 0)
+
+    monkeypatch.setattr(learning.subprocess, "run", train)
+    arguments = ["--script", "jirl_sac_continuous.py", "--seeds", "1", "2", "--total-timesteps", "300", "--workdir", str(tmp_path)]
+    monkeypatch.setattr(sys, "argv", ["learning.py", *arguments, "--", "--learning-starts", "100"])
+    learning.main()
+    assert [cmd[cmd.index("--seed") + 1] for cmd in commands] == ["1", "2"] and all(cmd[-2:] == ["--learning-starts", "100"] for cmd in commands)
+    rows = {line.split(" | ")[0]: line.split(" | ")[1:] for line in capsys.readouterr().out.splitlines() if line.startswith("| ") and "---" not in line}
+    # eval mean -100 s + 10 (its median would be -100 s); the last logs: baseline -200, regrets 10 s and 30 s, RL control 0.2 s, SPS 40 + s
+    assert rows["| 1"][:6] == ["-90.0", "-200.0", "10.0", "30.0", "0.2", "41.0"]
+    assert rows["| 2"][:6] == ["-190.0", "-200.0", "20.0", "60.0", "0.4", "42.0"]
+    assert rows["| median"][:6] == ["-140.0", "-200.0", "15.0", "45.0", "0.3", "41.5"]
+    assert rows["| mean ± 95 % CI"][0] == learning.mean_ci([-90.0, -190.0])
 
 
 def test_track_laps_refuses_zero_episodes(monkeypatch, capsys):
