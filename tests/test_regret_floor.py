@@ -167,6 +167,41 @@ def test_learning_tabulates_the_newest_run_of_each_seed(monkeypatch, tmp_path, c
     assert rows["| mean ± 95 % CI"][0] == learning.mean_ci([-90.0, -190.0])
 
 
+def test_side_by_side_rotates_the_order_and_pairs_the_ratios_by_repetition(monkeypatch):
+    """The timing under every speed ratio BENCHMARKS.md quotes: repetition r runs the implementations in
+    an order rotated by r, each with seed r + 1, and a ratio is the median over repetitions of the
+    per-repetition ratios, not a ratio of medians."""
+    import side_by_side
+
+    seconds = {"a": [10.0, 5.0, 20 / 6], "b": [20.0, 20.0, 5.0], "c": [1.0, 1.0, 1.0]}  # 1,000 steps: a 100, 200, 300 SPS; b 50, 50, 200
+    ran = []
+
+    def timed(cmd, workdir):
+        ran.append(cmd)
+        name, seed = cmd
+        return seconds[name][int(seed) - 1], float(seed)
+
+    monkeypatch.setattr(side_by_side, "timed", timed)
+    whole, in_loop = side_by_side.measure(lambda name, seed: [name, str(seed)], ("a", "b", "c"), steps=1_000, repeats=3, workdir=ROOT)
+    assert ran == [["a", "1"], ["b", "1"], ["c", "1"], ["b", "2"], ["c", "2"], ["a", "2"], ["c", "3"], ["a", "3"], ["b", "3"]]
+    assert whole["a"] == pytest.approx([100.0, 200.0, 300.0]) and whole["b"] == pytest.approx([50.0, 50.0, 200.0])
+    assert in_loop == {"a": [1.0, 2.0, 3.0], "b": [1.0, 2.0, 3.0], "c": [1.0, 2.0, 3.0]}
+    # a / b per repetition: 2, 4, 1.5 (the ratio of the medians would be 200 / 50 = 4)
+    assert side_by_side.ratio_cell(whole, "a", "b") == "2.00 (range 1.50-4.00)"
+
+
+def test_side_by_side_times_a_process_and_reads_its_last_rate(tmp_path):
+    import side_by_side
+
+    seconds, sps = side_by_side.timed([sys.executable, "-c", "print('SPS: 12.5'); print('SPS: 40.25')"], tmp_path)
+    assert sps == 40.25 and 0.0 < seconds < 60.0  # the loop's last report: its rate at the end
+    assert np.isnan(side_by_side.timed([sys.executable, "-c", "print('no rate')"], tmp_path)[1])
+    failing = [sys.executable, "-c", "import sys; print('\\n'.join(f'line {i}' for i in range(20)), file=sys.stderr); sys.exit(3)"]
+    with pytest.raises(SystemExit) as stopped:
+        side_by_side.timed(failing, tmp_path)
+    assert "exited with 3:\nline 5\n" in str(stopped.value) and str(stopped.value).endswith("line 19")  # the last 15 lines of its stderr
+
+
 def test_track_laps_refuses_zero_episodes(monkeypatch, capsys):
     import track_laps
 
