@@ -2,6 +2,7 @@
 
 import decimal
 import math
+import re
 
 import numpy as np
 import pytest
@@ -10,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import integrate, stats
 
-from conftest import load_script
+from conftest import ROOT, load_script
 
 jirl = load_script("jirl_sac_continuous")
 sac = load_script("sac_continuous")
@@ -149,6 +150,25 @@ def test_gate_never_acts_on_nan_and_handles_extremes():
     assert gate.log_rhos[-1] == pytest.approx(math.log(math.log1p(math.exp(-3.0))))
     assert jirl.log_positive_rho(-800.0) == pytest.approx(-800.0)  # no underflow to -inf
     assert jirl.log_positive_rho(1e6) == pytest.approx(math.log(1e6))
+
+
+def test_the_readmes_single_step_thresholds_of_c():
+    """The README says for which C one step passes the gate with the agent's mean on a^b = tanh(0.3), at
+    the initial std and at a confident one: C up to pi(a^b|s) / softplus(rho), written out here."""
+    text = " ".join((ROOT / "README.md").read_text().split())
+    found = re.search(r"a single step passes the gate for C up to ([\d.]+) at the initial std ([\d.]+), and for C up to (\d+) at std ([\d.]+)", text)
+    assert found, "the README no longer states the thresholds"
+    # the initial std: an untrained log-std layer outputs about 0, the middle of [LOG_STD_MIN, LOG_STD_MAX]
+    assert round(math.exp((jirl.LOG_STD_MIN + jirl.LOG_STD_MAX) / 2), 2) == float(found.group(2))
+    for stated_c, std in ((float(found.group(1)), float(found.group(2))), (float(found.group(3)), float(found.group(4)))):
+        mean, a_b = 0.3, math.tanh(0.3)
+        density = stats.norm.pdf(mean, mean, std) / (1.0 - a_b**2)  # change of variables through tanh, at the mean
+        rho = 0.5 * math.log(2.0 * math.pi * math.e * std**2) + math.log(1.0 - a_b**2)  # linearised entropy; distance 0
+        c_max = density / math.log1p(math.exp(rho))
+        assert round(c_max, 1 if stated_c < 10 else 0) == stated_c, (std, c_max)
+        log_prob = jirl.squashed_log_prob(np.array([mean]), np.array([math.log(std)]), np.array([a_b]))
+        rho_script = jirl.divergence(np.array([mean]), np.array([math.log(std)]), np.array([a_b]))
+        assert jirl.Gate(5).decide(log_prob, rho_script, c_max * (1 - 1e-9)) and not jirl.Gate(5).decide(log_prob, rho_script, c_max * (1 + 1e-9))
 
 
 def test_log_positive_rho_is_log_softplus_to_double_precision_over_its_whole_range():
