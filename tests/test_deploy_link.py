@@ -1,6 +1,7 @@
 """deploy/: the serial protocol, the mock firmware's state machine, and the host link over mock ports and a pty."""
 
 import queue
+import re
 import subprocess
 import sys
 import threading
@@ -11,6 +12,7 @@ from contextlib import contextmanager
 import numpy as np
 import pytest
 import serial
+from cobs import cobs
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -44,6 +46,46 @@ def test_every_message_round_trips_and_frames_have_one_delimiter():
 
 def test_the_documented_example_frame():
     assert p.encode(p.Message(p.DRIVE, 7, (-250, 500))) == bytes.fromhex("0b 01 03 07 04 06 ff f4 01 f6 c8 00")
+
+
+def test_the_protocol_document_states_the_codes_layouts_and_limits_in_code():
+    """docs/serial_protocol.md is the contract firmware is written from: its message tables (type, name,
+    payload fields and widths), status bits, NACK reasons, frame limits, the reference controller's
+    values and the host's defaults are those of deploy/protocol.py, mock_controller.py and link.py."""
+    from deploy import jetracer, mock_controller
+
+    text = (ROOT / "docs" / "serial_protocol.md").read_text()
+    widths = {"u8": "B", "u16": "H", "i16": "h", "u32": "I"}
+    documented = {}
+    for section in ("## Messages, host to controller", "## Messages, controller to host"):
+        for line in text.split(section, 1)[1].split("\n\n", 2)[1].splitlines()[2:]:  # the table, past its header
+            code, name, payload, _ = (cell.strip() for cell in line.strip("|").split("|"))
+            fields = re.findall(r"(\w+) ([ui]\d+)", payload)
+            assert fields or payload == "none", line
+            documented[int(code, 16)] = (name, "<" + "".join(widths[width] for _, width in fields))
+    assert documented == {code: (p.NAMES[code], layout.format) for code, layout in p.PAYLOADS.items()}
+    flat, link = " ".join(text.split()), HostLink("mockjetracer://")  # not started: its defaults
+    bits = dict(re.findall(r"(0x0\d) (armed|e-stop latched|watchdog tripped)", flat.split("status** bits:", 1)[1][:80]))
+    assert {int(bit, 16): name for bit, name in bits.items()} == {p.STATUS_ARMED: "armed", p.STATUS_ESTOP_LATCHED: "e-stop latched", p.STATUS_WATCHDOG_TRIPPED: "watchdog tripped"}
+    reasons = re.findall(r"(\d) ([a-z -]+?)[,.]", flat.split("**reasons**:", 1)[1].split("## ", 1)[0])
+    assert {int(code): reason for code, reason in reasons} == p.REASONS
+    stated = [
+        (r"payload length in bytes \(u8, at most (\d+)\)", (p.MAX_PAYLOAD,)),
+        (r"longer than (\d+) bytes before decoding \(the COBS encoding of the longest body, (\d+) bytes; (\d+) with the 0x00\)",
+         (len(cobs.encode(bytes(range(1, p.MAX_BODY + 1)))), p.MAX_BODY, p.MAX_BODY + 2)),
+        (r"The reference values are version (\d+), firmware (\d+)\.(\d+), watchdog (\d+)–(\d+) ms",
+         (p.VERSION, *mock_controller.FIRMWARE_VERSION, mock_controller.MIN_WATCHDOG_MS, mock_controller.MAX_WATCHDOG_MS)),
+        (r"an unsolicited TELEMETRY at least every (\d+) ms", (round(1000 * mock_controller.TELEMETRY_PERIOD),)),
+        (r"ARM with the configured watchdog period \(default (\d+) ms\)", (link.watchdog_ms,)),
+        (r"default ([\d.]+) × the control rate, (\d+) Hz at (\d+) Hz control",
+         (jetracer.SENDS_PER_PERIOD, jetracer.SENDS_PER_PERIOD * jetracer.Common().control_hz, jetracer.Common().control_hz)),
+        (r"exponential back-off \((\d+) ms doubling to (\d+) s\)", (1000 * link.backoff[0], link.backoff[1])),
+        (r"keeps the latest (\d+) NACKs", (link.nacks.maxlen,)),
+    ]
+    for pattern, expected in stated:
+        found = re.search(pattern, flat)
+        assert found, pattern
+        assert tuple(float(g) for g in found.groups()) == expected, (pattern, found.groups(), expected)
 
 
 def test_decoder_resynchronises_after_garbage_and_split_reads():
