@@ -307,6 +307,17 @@ def _printed_figures(text: str) -> dict[str, float]:
     return {"mean": _number(mean), "std": _number(std), "per_step": _number(per_step[0] or per_step[1])}
 
 
+def _readme_row(env_id: str) -> tuple[int, dict[str, float]]:
+    """The episodes and figures of the env's row in the README's table of baselines: return ± std, reward
+    per step, episode length (`| env | baseline | return (20 episodes) | reward per step | length |`)."""
+    readme = (ROOT / "README.md").read_text().split("\n## Baselines\n", 1)[1]
+    assert "| env | baseline | return (20 episodes) | reward per step | length |" in readme
+    cells = [cell.strip() for cell in next(line for line in readme.splitlines() if line.startswith(f"| {env_id} |")).split("|")[1:-1]]
+    episodes = re.search(r"\((\d+) episodes\)", cells[2])
+    mean, std = cells[2].split()[0], cells[2].split()[2]
+    return int(episodes.group(1)) if episodes else 20, {"mean": _number(mean), "std": _number(std), "per_step": _number(cells[3]), "length": _number(cells[4].split()[0])}
+
+
 def _documented_figures(benchmarks: str, marker: str) -> dict[str, float]:
     """The figures after ``marker`` in BENCHMARKS.md: a row of its baselines table, or the prose after a command."""
     at = benchmarks.index(marker)
@@ -330,13 +341,21 @@ DOCUMENTED_BASELINES = [
 @pytest.mark.parametrize("env_id, spec, marker, episodes", DOCUMENTED_BASELINES, ids=[f"{e}{'-expert' if s else ''}" for e, s, _, _ in DOCUMENTED_BASELINES])
 def test_the_baseline_figures_in_benchmarks_are_what_the_baselines_do_now(env_id, spec, marker, episodes, capsys):
     """Every regret in BENCHMARKS.md is measured against these baselines: a change to a controller or to
-    an env that moves its return must come with new figures. Within 0.5 % (1 % for the two PyBullet envs,
-    whose physics and camera could round differently on another CPU); measured here, they agree to the digit."""
+    an env that moves its return must come with new figures, in BENCHMARKS.md and in the README's table
+    of baselines (the env's own baseline). Within 0.5 % (1 % for the two PyBullet envs, whose physics
+    and camera could round differently on another CPU); measured here, they agree to the digit."""
     benchmarks = (ROOT / "BENCHMARKS.md").read_text()
-    documented = _documented_figures(benchmarks, marker)
+    documented = [_documented_figures(benchmarks, marker)]
+    if not spec:
+        readme_episodes, readme_figures = _readme_row(env_id)
+        assert readme_episodes == episodes, (env_id, readme_episodes, episodes)
+        documented.append(readme_figures)
     baselines.main(["--env-id", env_id, "--episodes", str(episodes), *(["--baseline", spec] if spec else [])])
-    measured = _printed_figures(capsys.readouterr().out)
+    printed = capsys.readouterr().out
+    measured = {**_printed_figures(printed), "length": float(re.search(r"episode length +([\d.]+)", printed).group(1))}
     tolerance = 0.01 if "Bullet" in env_id or "JetRacer" in env_id else 0.005
-    assert measured["mean"] == pytest.approx(documented["mean"], rel=tolerance, abs=0.1), (measured, documented)
-    assert measured["per_step"] == pytest.approx(documented["per_step"], rel=tolerance, abs=0.001), (measured, documented)
-    assert measured["std"] == pytest.approx(documented["std"], rel=0.1, abs=0.1), (measured, documented)
+    for figures in documented:
+        assert measured["mean"] == pytest.approx(figures["mean"], rel=tolerance, abs=0.1), (measured, figures)
+        assert measured["per_step"] == pytest.approx(figures["per_step"], rel=tolerance, abs=0.001), (measured, figures)
+        assert measured["std"] == pytest.approx(figures["std"], rel=0.1, abs=0.1), (measured, figures)
+        assert measured["length"] == pytest.approx(figures.get("length", measured["length"]), abs=0.1), (measured, figures)
