@@ -1,11 +1,14 @@
 """Out-of-range arguments end the parse with a message naming the flag, before anything runs or is written."""
 
+import ast
 import dataclasses
+import inspect
 import math
 import os
 import re
 import subprocess
 import sys
+import textwrap
 import typing
 
 import pytest
@@ -28,6 +31,22 @@ def numeric_fields(cls) -> list[tuple[str, type]]:
 
 
 ARG_CLASSES = {name: load_script(name).Args for name in SCRIPTS} | {f"deploy {c}": getattr(jetracer, c) for c in ("Run", "Baseline", "Train")}
+
+
+@pytest.mark.parametrize("label", list(ARG_CLASSES))
+def test_every_option_has_the_docstring_its_help_shows(label):
+    """CleanRL's shape: each Args field is followed by its docstring, which tyro prints as the option's
+    help; a field without one shows only its default in `--help`. Inherited fields (the car's common
+    options) are read in the class that declares them."""
+    documented = set()
+    for cls in reversed([c for c in ARG_CLASSES[label].__mro__ if dataclasses.is_dataclass(c)]):
+        body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
+        for field, after in zip(body, [*body[1:], None]):
+            if isinstance(field, ast.AnnAssign):
+                docstring = after.value.value if isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant) else None
+                assert isinstance(docstring, str) and docstring.strip(), f"{cls.__name__}.{field.target.id} has no docstring"
+                documented.add(field.target.id)
+    assert documented == {f.name for f in dataclasses.fields(ARG_CLASSES[label])}
 
 
 @pytest.mark.parametrize("label", list(ARG_CLASSES))
