@@ -30,6 +30,30 @@ SHARED_BY_ALL = [  # the baseline, regret, checkpoint and early-stop code every 
 ]
 
 
+@pytest.mark.parametrize("script", ["sac_continuous", "jirl_sac_continuous", "ppo_il", "trpo_il"])
+def test_a_script_imports_no_other_and_envs_only_where_it_runs_without(script):
+    """Each script stands alone, to be copied into another project: it imports no other script nor
+    anything else of this repository but `envs/`, and that only in a `try` whose `except ImportError`
+    runs the script without it (as `test_script_copied_alone_runs_with_a_user_baseline` does for JIRL)."""
+    tree = ast.parse((ROOT / f"{script}.py").read_text())
+    ours = {p.stem for p in ROOT.glob("*.py")} | {p.parent.name for p in ROOT.glob("*/*.py")}  # the scripts, envs, deploy, benchmarks, tests
+
+    def catches_import_error(handler: ast.ExceptHandler) -> bool:
+        caught = handler.type.elts if isinstance(handler.type, ast.Tuple) else [handler.type]
+        return any(isinstance(t, ast.Name) and t.id in ("ImportError", "ModuleNotFoundError") for t in caught)
+
+    guarded = {id(node) for top in tree.body if isinstance(top, ast.Try) and any(map(catches_import_error, top.handlers)) for node in top.body}
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            for name in [alias.name for alias in node.names] if isinstance(node, ast.Import) else [node.module or "."]:
+                root = name.split(".")[0]
+                if root in ours:
+                    assert root == "envs" and id(node) in guarded, f"{script}.py line {node.lineno} imports {name}"
+                    found.append(name)
+    assert found, "the project's env ids and baselines are imported where present"
+
+
 def test_jirl_repeats_every_sac_definition_it_does_not_extend():
     assert set(SAC) <= set(JIRL), f"missing from the JIRL script: {sorted(set(SAC) - set(JIRL))}"
     drifted = [name for name in SAC if name not in JIRL_CHANGES and SAC[name] != JIRL[name]]
