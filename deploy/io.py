@@ -12,7 +12,7 @@ import os
 import struct
 import threading
 import time
-from typing import Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Protocol, Tuple, Union
 
 import numpy as np
 
@@ -61,7 +61,7 @@ class OpenCVCamera:
     raise CameraFailed, naming it.
     """
 
-    def __init__(self, source, api: Optional[int] = None, realtime: bool = True) -> None:
+    def __init__(self, source: Union[str, int], api: Optional[int] = None, realtime: bool = True) -> None:
         import cv2
 
         self.capture = cv2.VideoCapture(source, api) if api is not None else cv2.VideoCapture(source)
@@ -135,6 +135,13 @@ class OpenCVCamera:
         self.capture.release()
 
 
+class AppliedOutputs(Protocol):
+    """What the simulator reads of a motor controller: the outputs it applies now."""
+
+    steering: float
+    throttle: float
+
+
 class SimWorld:
     """The PyBullet track car driven by a mock controller's applied outputs: sim-in-the-loop.
 
@@ -143,7 +150,7 @@ class SimWorld:
     `read()` is the car's camera. A car that leaves the lane is put back at a random pose.
     """
 
-    def __init__(self, controller, seed: int = 0, **env_kwargs) -> None:
+    def __init__(self, controller: AppliedOutputs, seed: int = 0, **env_kwargs: Any) -> None:
         from envs.jetracer_track import JetRacerTrackEnv
 
         self.controller = controller
@@ -178,7 +185,7 @@ class SimWorld:
         self.env.close()
 
 
-def open_camera(spec: str, world: Optional[SimWorld] = None):
+def open_camera(spec: str, world: Optional[SimWorld] = None) -> Union[OpenCVCamera, SimWorld]:
     """`csi`, `usb:N`, `file:PATH` (a recorded video, replayed frame by frame) or `sim`."""
     if spec == "sim":
         if world is None:

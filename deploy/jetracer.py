@@ -292,7 +292,7 @@ class CarSession:
             raise SystemExit(f"{mode}: error: {self.writer.failure}")
         jirl.OutputGuard.install(self.writer.get_logdir())  # what an ssh session that drops no longer shows is kept beside the logs
 
-    def _on_signal(self, *_) -> None:
+    def _on_signal(self, *_: object) -> None:
         self.stop_requested = True
         if getattr(self, "link", None) is not None and not self.link.estop():  # at once, not at the next tick
             self.estop_unsent = True  # not printed here: that could re-enter a stderr write the signal interrupted
@@ -906,7 +906,7 @@ def train_holding(args: Train) -> dict:
     return counters
 
 
-def overflow(actor, rb: jirl.ReplayBuffer, rows: int = OVERFLOW_ROWS) -> str:
+def overflow(actor: jirl.Actor, rb: jirl.ReplayBuffer, rows: int = OVERFLOW_ROWS) -> str:
     """'' unless the actor's mean or log-std overflows on the latest `rows` stored observations: finite
     weights large enough overflow float32, which the weights' own check cannot see."""
     import torch
@@ -925,7 +925,7 @@ def learning(step: int, rb: jirl.ReplayBuffer, hp: jirl.Args) -> bool:
     return step >= hp.learning_starts and rb.size >= hp.batch_size
 
 
-def background_learner(sac, rb, counters: dict, args: Train, lock: threading.Lock, finished: threading.Event) -> None:
+def background_learner(sac: jirl.SoftActorCritic, rb: jirl.ReplayBuffer, counters: dict, args: Train, lock: threading.Lock, finished: threading.Event) -> None:
     """Gradient steps while the car drives, keeping gradient_steps / train_every of them per env step.
     An update that raises ends the learner with the error in counters["learner_error"]; the loop then stops."""
     hp = args.jirl

@@ -16,9 +16,12 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
-from typing import Callable, Deque, Dict, List, Optional, Tuple
+from typing import TYPE_CHECKING, Callable, Deque, Dict, List, Optional, Tuple
 
 from deploy import protocol as p
+
+if TYPE_CHECKING:  # for the annotation only: pyserial is imported where a port is opened
+    import serial
 
 
 @dataclass
@@ -42,7 +45,7 @@ class Telemetry:
         return bool(self.status & p.STATUS_WATCHDOG_TRIPPED)
 
 
-def _open_url(url: str, timeout: float):
+def _open_url(url: str, timeout: float) -> serial.SerialBase:
     import serial
 
     from deploy.mock_controller import register_url_scheme
@@ -145,7 +148,7 @@ class HostLink:
     def __enter__(self) -> "HostLink":
         return self.start()
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # -- commands ------------------------------------------------------------------------------

@@ -138,7 +138,7 @@ class MockController:
 class Serial:
     """pyserial port for `serial_for_url("mockjetracer://")`: an in-process MockController on the real clock."""
 
-    def __init__(self, url: Optional[str] = None, timeout: Optional[float] = None, **_ignored) -> None:
+    def __init__(self, url: Optional[str] = None, timeout: Optional[float] = None, **_ignored: object) -> None:
         self.port, self.timeout = url, timeout
         self.controller = MockController(time.monotonic())
         self.is_open = False

@@ -74,7 +74,7 @@ def get_baseline(env_id: str, spec: str = "") -> Baseline:
     return baseline() if isinstance(baseline, type) else baseline
 
 
-def rollout(env, policy: Baseline, seed: int) -> np.ndarray:
+def rollout(env: gym.Env, policy: Baseline, seed: int) -> np.ndarray:
     """Run one episode from ``env.reset(seed=seed)``; return the reward of every step."""
     if hasattr(policy, "reset"):
         policy.reset()

@@ -18,7 +18,7 @@ import math
 import os
 import tempfile
 from dataclasses import dataclass
-from typing import Any, Optional
+from typing import Any, Iterator, Optional
 
 import gymnasium as gym
 import numpy as np
@@ -47,7 +47,7 @@ class CarSpec:
 
 
 @contextlib.contextmanager
-def _quiet_stdout():
+def _quiet_stdout() -> Iterator[None]:
     """PyBullet's C code prints to file descriptor 1 on import and connect; keep the scripts' output clean."""
     import sys
 

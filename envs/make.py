@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import gymnasium as gym
 
 # Env ids that need an extra import to be registered, by prefix of the id.
@@ -24,7 +26,7 @@ def _register_lazily(env_id: str) -> None:
                 raise ValueError(f"env id {env_id!r} needs {module}, which does not import: {err}") from None
 
 
-def make_env(env_id: str, seed: int | None = None, render_mode: str | None = None, **kwargs) -> gym.Env:
+def make_env(env_id: str, seed: int | None = None, render_mode: str | None = None, **kwargs: Any) -> gym.Env:
     """Make ``env_id`` with Gymnasium's default wrappers (TimeLimit included).
 
     ``seed`` seeds the action space (for random warm-up actions); episodes are seeded by the

@@ -382,6 +382,23 @@ def test_run_drives_a_checkpoint_trained_by_the_jirl_script(tmp_path):
         jetracer.run(jetracer.Run(checkpoint=str(broken), steps=1, log_dir=str(tmp_path)))
 
 
+def test_envs_and_deploy_annotate_every_signature():
+    """`envs/` and `deploy/` are small typed modules: every parameter (self and cls aside) and every return
+    of their functions and methods is annotated, `*args` and `**kwargs` included (`__init__` returns None)."""
+    import ast
+
+    unannotated = []
+    for path in sorted([*(ROOT / "envs").glob("*.py"), *(ROOT / "deploy").glob("*.py")]):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                a = node.args
+                params = [*a.posonlyargs, *a.args, *a.kwonlyargs, *filter(None, (a.vararg, a.kwarg))]
+                missing = [x.arg for x in params if x.annotation is None and x.arg not in ("self", "cls")]
+                missing += ["return"] if node.returns is None and node.name != "__init__" else []
+                unannotated += [f"{path.relative_to(ROOT)}:{node.lineno} {node.name}: {', '.join(missing)}"] if missing else []
+    assert unannotated == []
+
+
 def test_deploy_and_what_it_imports_run_on_python_3_8(tmp_path):
     vermin = [str(Path(sys.executable).parent / "vermin"), "--no-tips", "--violations", "-t=3.8-"]
     files = ["deploy", "jirl_sac_continuous.py", "envs/__init__.py", "envs/make.py", "envs/baselines.py",
