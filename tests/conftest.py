@@ -34,6 +34,15 @@ OTHER_PENDULUM_SPACES = [
 ]
 
 
+def figures_stated(text: str, pattern: str) -> list[tuple[float, ...]]:
+    """The numbers that each match of `pattern` captures in a document's `text`, its lines joined by single
+    spaces (`2,000`, `10k` and `−10` read as numbers); the document must still say it."""
+    flat = " ".join(text.split())
+    matches = [tuple(float(g.replace(",", "").replace("−", "-").replace("k", "e3")) for g in m.groups()) for m in re.finditer(pattern, flat)]
+    assert matches, f"the document no longer says {pattern!r}"
+    return matches
+
+
 def load_script(name: str):
     """Import ROOT/name.py under its own name (its `__main__` block does not run)."""
     if name in sys.modules:

@@ -16,7 +16,7 @@ from cobs import cobs
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import ROOT
+from conftest import ROOT, figures_stated
 from deploy import protocol as p
 from deploy.link import HostLink
 from deploy.mock_controller import MockController, PtyController, register_url_scheme
@@ -83,9 +83,7 @@ def test_the_protocol_document_states_the_codes_layouts_and_limits_in_code():
         (r"keeps the latest (\d+) NACKs", (link.nacks.maxlen,)),
     ]
     for pattern, expected in stated:
-        found = re.search(pattern, flat)
-        assert found, pattern
-        assert tuple(float(g) for g in found.groups()) == expected, (pattern, found.groups(), expected)
+        assert figures_stated(text, pattern) == [expected], (pattern, figures_stated(text, pattern), expected)
 
 
 def test_decoder_resynchronises_after_garbage_and_split_reads():

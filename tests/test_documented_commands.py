@@ -15,7 +15,7 @@ import subprocess
 import sys
 from collections.abc import Sequence
 
-from conftest import ROOT, load_script
+from conftest import ROOT, figures_stated, load_script
 
 DOCUMENTS = ["README.md", "BENCHMARKS.md", *sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "docs").rglob("*.md"))]
 PROGRAMS = sorted(p.relative_to(ROOT).as_posix() for folder in (".", "benchmarks", "envs", "deploy") for p in (ROOT / folder).glob("*.py"))
@@ -170,16 +170,8 @@ def test_the_readmes_hyperparameter_table_is_what_the_scripts_resolve():
 
 
 def readme_section(heading: str) -> str:
-    """The README's text under this `## ` heading, up to the next one, its lines joined by spaces."""
-    text = (ROOT / "README.md").read_text().split(f"\n{heading}\n", 1)[1]
-    return " ".join(text.split("\n## ", 1)[0].split())
-
-
-def stated(text: str, pattern: str) -> list[tuple[float, ...]]:
-    """The numbers each match of `pattern` captures in `text` (`2,000`, `10k`, `−10`), at least one match."""
-    matches = [tuple(float(g.replace(",", "").replace("−", "-").replace("k", "e3")) for g in m.groups()) for m in re.finditer(pattern, text)]
-    assert matches, f"the README no longer says {pattern!r}"
-    return matches
+    """The README's text under this `## ` heading, up to the next one."""
+    return (ROOT / "README.md").read_text().split(f"\n{heading}\n", 1)[1].split("\n## ", 1)[0]
 
 
 def test_the_readmes_car_sections_state_the_defaults_in_code():
@@ -209,7 +201,8 @@ def test_the_readmes_car_sections_state_the_defaults_in_code():
     ]
     common, train, hp = jetracer.Common(), jetracer.Train(), jetracer.car_jirl_defaults()
     real = readme_section("## deploy/: the real car")
-    watchdogs = {common.watchdog_ms, inspect.signature(link.HostLink.__init__).parameters["watchdog_ms"].default, 1000 * mock_controller.MockController().watchdog_period}
+    # one watchdog period by default on every side: the car's option, the host link's, the mock controller's
+    assert common.watchdog_ms == inspect.signature(link.HostLink.__init__).parameters["watchdog_ms"].default == 1000 * mock_controller.MockController().watchdog_period
     claims += [
         (real, r"JIRL's gate, penalized reward and switch penalty .{0,80} at (\d+) Hz", (common.control_hz,)),
         (real, r"Every (\d+) steps the car is stopped for (\d+) gradient steps", (train.train_every, train.gradient_steps)),
@@ -217,9 +210,9 @@ def test_the_readmes_car_sections_state_the_defaults_in_code():
         (real, r"half of `--total-steps` \(([\d,]+) of the paper's ([\d,]+)\)", (train.total_steps // 2, train.total_steps)),
         (real, r"on the (\d+) latest stored observations", (jetracer.OVERFLOW_ROWS,)),
         (real, r"no fresh camera frame has come for (\d+) s", (jetracer.CAMERA_LOST_S,)),
-        (real, r"The controller's watchdog \((\d+) ms\)", (*watchdogs,)),
+        (real, r"The controller's watchdog \((\d+) ms\)", (common.watchdog_ms,)),
     ]
     for text, pattern, expected in claims:
-        assert all(found == expected for found in stated(text, pattern)), (pattern, stated(text, pattern), expected)
+        assert all(found == expected for found in figures_stated(text, pattern)), (pattern, figures_stated(text, pattern), expected)
     # the entropy coefficient: tuned on the car, from the script's own starting value
-    assert hp.autotune and stated(real, r"The entropy coefficient is tuned from the script's ([\d.]*\d)") == [(hp.alpha,)] == [(load_script("jirl_sac_continuous").Args().alpha,)]
+    assert hp.autotune and figures_stated(real, r"The entropy coefficient is tuned from the script's ([\d.]*\d)") == [(hp.alpha,)] == [(load_script("jirl_sac_continuous").Args().alpha,)]

@@ -2,7 +2,6 @@
 
 import decimal
 import math
-import re
 
 import numpy as np
 import pytest
@@ -11,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import integrate, stats
 
-from conftest import ROOT, load_script
+from conftest import ROOT, figures_stated, load_script
 
 jirl = load_script("jirl_sac_continuous")
 sac = load_script("sac_continuous")
@@ -155,12 +154,11 @@ def test_gate_never_acts_on_nan_and_handles_extremes():
 def test_the_readmes_single_step_thresholds_of_c():
     """The README says for which C one step passes the gate with the agent's mean on a^b = tanh(0.3), at
     the initial std and at a confident one: C up to pi(a^b|s) / softplus(rho), written out here."""
-    text = " ".join((ROOT / "README.md").read_text().split())
-    found = re.search(r"a single step passes the gate for C up to ([\d.]+) at the initial std ([\d.]+), and for C up to (\d+) at std ([\d.]+)", text)
-    assert found, "the README no longer states the thresholds"
+    pattern = r"a single step passes the gate for C up to ([\d.]*\d) at the initial std ([\d.]*\d), and for C up to (\d+) at std ([\d.]*\d)"
+    ((c_initial, initial_std, c_confident, confident_std),) = figures_stated((ROOT / "README.md").read_text(), pattern)
     # the initial std: an untrained log-std layer outputs about 0, the middle of [LOG_STD_MIN, LOG_STD_MAX]
-    assert round(math.exp((jirl.LOG_STD_MIN + jirl.LOG_STD_MAX) / 2), 2) == float(found.group(2))
-    for stated_c, std in ((float(found.group(1)), float(found.group(2))), (float(found.group(3)), float(found.group(4)))):
+    assert round(math.exp((jirl.LOG_STD_MIN + jirl.LOG_STD_MAX) / 2), 2) == initial_std
+    for stated_c, std in ((c_initial, initial_std), (c_confident, confident_std)):
         mean, a_b = 0.3, math.tanh(0.3)
         density = stats.norm.pdf(mean, mean, std) / (1.0 - a_b**2)  # change of variables through tanh, at the mean
         rho = 0.5 * math.log(2.0 * math.pi * math.e * std**2) + math.log(1.0 - a_b**2)  # linearised entropy; distance 0
