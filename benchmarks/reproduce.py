@@ -32,7 +32,7 @@ import warnings
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Literal, Optional
+from typing import Iterator, Literal, Optional, Sequence
 
 import numpy as np
 
@@ -377,7 +377,7 @@ def fmt(mean: float, half: float) -> str:
     return f"{mean:,.0f}" if math.isnan(half) else f"{mean:,.0f} ± {half:,.0f}"
 
 
-def collect(workdir: Path, envs, methods, seeds) -> dict:
+def collect(workdir: Path, envs: Sequence[str], methods: Sequence[str], seeds: Sequence[int]) -> dict:
     """results[env][method][seed] = scalars of the finished runs."""
     results: dict = {}
     for env in envs:

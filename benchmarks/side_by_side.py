@@ -13,6 +13,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import ModuleType
 from typing import Callable, Sequence
 
 import numpy as np
@@ -93,7 +94,7 @@ def script_at(revision: str, dest: Path, script: str = "sac_continuous.py") -> P
     return path
 
 
-def load_module(script: str, name: str = "sac_under_test"):
+def load_module(script: str, name: str = "sac_under_test") -> ModuleType:
     """Import the algorithm script at `script` as a module (its main block does not run)."""
     spec = importlib.util.spec_from_file_location(name, script)
     module = importlib.util.module_from_spec(spec)
