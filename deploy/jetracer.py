@@ -52,6 +52,8 @@ OVERFLOW_ROWS = 256  # the latest stored observations a pause runs the actor on 
 
 @dataclass
 class Common:
+    """The options of every mode: the controller, the camera, the control rate and safety limits, the gamepad, the logs."""
+
     port: str = "mockjetracer://"
     """motor controller: a serial device (/dev/ttyACM0), mockjetracer:// (simulated car), or spy://DEVICE?file=LOG"""
     camera: str = "sim"
@@ -137,9 +139,11 @@ CAR_IGNORES = {
 
 
 def car_jirl_defaults() -> jirl.Args:
-    # The paper's car settings (report Tables I-III): 64 units, batch 64, buffer 10k, K = 10, sigma^2 = 0.01;
-    # the entropy coefficient stays tuned from the script's 0.2 (the report and the authors' code disagree: README);
-    # guidance by time (the car's laps are no episodes to compare with the baseline's), over half of --total-steps
+    """The paper's car settings (report Tables I-III): 64 units, batch 64, buffer 10k, K = 10, sigma^2 = 0.01.
+
+    The entropy coefficient stays tuned from the script's 0.2 (the report and the authors' code disagree: README);
+    guidance by time (the car's laps are no episodes to compare with the baseline's), over half of --total-steps.
+    """
     return jirl.Args(env_id="JetRacer", hidden_size=64, batch_size=64, buffer_size=10_000, learning_starts=300,
                      gate_k=10, penalty_sigma2=0.01, guidance_schedule="geometric")  # fmt: skip
 
@@ -482,6 +486,7 @@ def drive(session: CarSession, policy: Callable[[np.ndarray], np.ndarray], steps
 
 
 def run(args: Run) -> List[float]:
+    """Drive `--steps` periods with the checkpoint's deterministic (mean) action; the reward of each step."""
     import torch
 
     if not args.checkpoint:
@@ -502,10 +507,13 @@ def run(args: Run) -> List[float]:
 
 
 def baseline(args: Baseline) -> List[float]:
+    """Drive `--steps` periods with the lane follower; the reward of each step."""
     return drive_and_report(args, "baseline", LaneFollower(), args.steps)
 
 
 def drive_and_report(args: Common, mode: str, policy: Callable[[np.ndarray], np.ndarray], steps: int) -> List[float]:
+    """Drive `steps` periods with `policy` in a session of its own, print the report, return the rewards;
+    SystemExit(1) after the report if the drive ended on an error."""
     session = CarSession(args, mode)
     try:
         rewards = drive(session, policy, steps)
@@ -518,6 +526,7 @@ def drive_and_report(args: Common, mode: str, policy: Callable[[np.ndarray], np.
 
 
 def report(session: CarSession, rewards: List[float], mode: str) -> None:
+    """Print the drive's steps and mean reward per step, its lap times, and the loop's and the link's timing."""
     laps = session.world.lap_times if session.world is not None else []
     print(f"{mode}: {len(rewards)} steps, mean reward per step {np.mean(rewards) if rewards else float('nan'):.4f}")
     if laps:

@@ -26,6 +26,9 @@ if TYPE_CHECKING:  # for the annotation only: pyserial is imported where a port 
 
 @dataclass
 class Telemetry:
+    """The controller's latest TELEMETRY: the steering and throttle it applies (in [-1, 1]), its status bits,
+    its uptime (ms), and when the host received it (s, on the link's clock)."""
+
     steering: float
     throttle: float
     status: int
@@ -57,6 +60,9 @@ def _open_url(url: str, timeout: float) -> serial.SerialBase:
 
 
 class HostLink:
+    """The host's link to one motor controller (module docstring): `start()`, then `hello()`, `arm()`,
+    `drive()` at the control rate, `stop()` or `estop()`; `close()` at the end."""
+
     def __init__(
         self,
         url: str,
@@ -94,6 +100,7 @@ class HostLink:
 
     # -- lifecycle -----------------------------------------------------------------------------
     def start(self) -> "HostLink":
+        """Open the port (OSError if it cannot be) and start the receive and send threads."""
         self._connect()
         for target in (self._receive_loop, self._send_loop):
             thread = threading.Thread(target=target, daemon=True)
@@ -168,6 +175,7 @@ class HostLink:
             return self._reply.wait_for(predicate, timeout)
 
     def hello(self, timeout: float = 1.0) -> Optional[p.Message]:
+        """The controller's INFO (protocol and firmware versions, watchdog range), or None if none came within `timeout` s."""
         self.info = None
         self._send(p.HELLO)
         self._wait_for(lambda: self.info is not None, timeout)
@@ -198,6 +206,7 @@ class HostLink:
         self._command = (steering, throttle, self._clock())
 
     def stop(self) -> None:
+        """Drop the command: STOP from the next send, the controller still armed."""
         self._command = None
 
     def estop(self) -> bool:

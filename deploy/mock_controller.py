@@ -25,6 +25,9 @@ TELEMETRY_PERIOD = 0.05  # s between unsolicited telemetry frames while armed
 
 
 class MockController:
+    """The controller's state machine of docs/serial_protocol.md, on the caller's clock: `receive(data, now)`
+    takes the host's bytes, `poll(now)` runs the watchdog and the telemetry, `take_output()` gives the frames sent."""
+
     def __init__(self, now: float = 0.0) -> None:
         self.decoder = p.FrameDecoder()
         self.armed = False

@@ -51,6 +51,9 @@ REASONS = {UNKNOWN_TYPE: "unknown type", BAD_LENGTH: "bad length", NOT_ARMED: "n
 
 @dataclass(frozen=True)
 class Message:
+    """One message: its type, the sender's sequence number (0-255), its payload fields as integers in the
+    order and widths of PAYLOADS[type], and the protocol version."""
+
     type: int
     seq: int
     fields: Tuple[int, ...] = ()
@@ -114,6 +117,8 @@ class FrameDecoder:
         self.dropped[why] = self.dropped.get(why, 0) + 1
 
     def feed(self, data: bytes) -> Iterator[Message]:
+        """The messages of the frames `data` completes, in order; bytes of an unfinished frame wait for the next
+        call. A dropped frame is counted in `dropped` by cause, and a refusable one added to `refusable`."""
         self._buffer.extend(data)
         while True:
             end = self._buffer.find(0)

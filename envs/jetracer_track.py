@@ -29,6 +29,8 @@ from envs.track import TrackSpec, wrap_angle
 
 @dataclass(frozen=True)
 class CarSpec:
+    """The car's geometry, dynamics and camera pose, each in the unit beside it; ValueError for an impossible car."""
+
     wheelbase: float = 0.2  # m
     max_steering_angle: float = 0.5  # rad at steering command 1
     max_speed: float = 2.5  # m/s at throttle 1
@@ -63,6 +65,9 @@ def _quiet_stdout() -> Iterator[None]:
 
 
 class JetRacerTrackEnv(gym.Env):
+    """The lane-following car (module docstring). Observation: float32 (142,), the 10x14 lane mask in [0, 1]
+    row by row, then the previous action in [-1, 1]. Action: float32 (2,), (steering, throttle) in [-1, 1]."""
+
     metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
 
     def __init__(
@@ -157,6 +162,8 @@ class JetRacerTrackEnv(gym.Env):
         }
 
     def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None) -> tuple[np.ndarray, dict]:
+        """With `random_start`, anywhere on the centre line, up to 5 cm beside it and 0.1 rad off its heading;
+        else at the start line. With `randomize_lighting`, the floor gets a new tint."""
         super().reset(seed=seed)
         s0 = self.np_random.uniform(0.0, self.track.length) if self.random_start else 0.0
         x, y, heading = self.track.pose_at(s0)
@@ -173,6 +180,7 @@ class JetRacerTrackEnv(gym.Env):
         return self._observe(), self._info()
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        """One control period under `action`, mapped to commands as on the car; ValueError for a non-finite one."""
         commands = action_to_commands(action, self.mapping)  # ValueError for a non-finite action, before any state changes
         self._previous_action = np.clip(np.asarray(action, dtype=np.float32), -1.0, 1.0)
         progress, terminated = self.drive(*commands)

@@ -21,6 +21,8 @@ def wrap_angle(angle: float) -> float:
 
 @dataclass(frozen=True)
 class TrackSpec:
+    """The stadium lane's geometry, in metres; ValueError for one that cannot be drawn."""
+
     straight_length: float = 2.0  # m, each straight
     radius: float = 1.0  # m, of the centre line on the bends
     lane_width: float = 0.5  # m, between the outer edges of the two edge tapes
