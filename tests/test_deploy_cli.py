@@ -392,9 +392,8 @@ def test_the_modules_annotate_their_signatures():
     for folder in ("envs", "deploy", "benchmarks"):
         for path in sorted((ROOT / folder).glob("*.py")):
             tree = ast.parse(path.read_text())
-            functions = ast.walk(tree) if folder != "benchmarks" else (node for node in tree.body if not getattr(node, "name", "_").startswith("_"))
-            for node in functions:
-                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            for node in tree.body if folder == "benchmarks" else ast.walk(tree):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and not (folder == "benchmarks" and node.name.startswith("_")):
                     a = node.args
                     params = [*a.posonlyargs, *a.args, *a.kwonlyargs, *filter(None, (a.vararg, a.kwarg))]
                     missing = [x.arg for x in params if x.annotation is None and x.arg not in ("self", "cls")]
