@@ -52,7 +52,8 @@ OVERFLOW_ROWS = 256  # the latest stored observations a pause runs the actor on 
 
 @dataclass
 class Common:
-    """The options of every mode: the controller, the camera, the control rate and safety limits, the gamepad, the logs."""
+    """The options of every mode: the controller, the camera, the control rate and safety limits, the gamepad, the logs,
+    and the simulated car's seed."""
 
     port: str = "mockjetracer://"
     """motor controller: a serial device (/dev/ttyACM0), mockjetracer:// (simulated car), or spy://DEVICE?file=LOG"""
