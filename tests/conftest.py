@@ -34,6 +34,13 @@ OTHER_PENDULUM_SPACES = [
 ]
 
 
+def readme_section(heading: str) -> str:
+    """The README's text under the line `heading` (`## Baselines`), up to the next heading of its level or above."""
+    level = len(heading) - len(heading.lstrip("#"))
+    text = (ROOT / "README.md").read_text().split(f"\n{heading}\n", 1)[1]
+    return re.split(rf"\n#{{1,{level}}} ", text, maxsplit=1)[0]
+
+
 def figures_stated(text: str, pattern: str) -> list[tuple[float, ...]]:
     """The numbers that each match of `pattern` captures in a document's `text`, its lines joined by single
     spaces (`2,000`, `10k` and `−10` read as numbers); the document must still say it."""

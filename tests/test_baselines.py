@@ -12,7 +12,7 @@ import pytest
 
 from envs import BASELINES, EXPERTS, baselines, get_baseline, load_baseline, make_env, rollout
 
-from conftest import ROOT, load_script
+from conftest import ROOT, load_script, readme_section
 
 
 @pytest.mark.parametrize("env_id", sorted(BASELINES))
@@ -310,7 +310,7 @@ def _printed_figures(text: str) -> dict[str, float]:
 def _readme_row(env_id: str) -> tuple[int, dict[str, float]]:
     """The episodes and figures of the env's row in the README's table of baselines: return ± std, reward
     per step, episode length (`| env | baseline | return (20 episodes) | reward per step | length |`)."""
-    readme = (ROOT / "README.md").read_text().split("\n## Baselines\n", 1)[1]
+    readme = readme_section("## Baselines")
     assert "| env | baseline | return (20 episodes) | reward per step | length |" in readme
     cells = [cell.strip() for cell in next(line for line in readme.splitlines() if line.startswith(f"| {env_id} |")).split("|")[1:-1]]
     episodes = re.search(r"\((\d+) episodes\)", cells[2])

@@ -15,7 +15,7 @@ import subprocess
 import sys
 from collections.abc import Sequence
 
-from conftest import ROOT, figures_stated, load_script
+from conftest import ROOT, figures_stated, load_script, readme_section
 
 DOCUMENTS = ["README.md", "BENCHMARKS.md", *sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "docs").rglob("*.md"))]
 PROGRAMS = sorted(p.relative_to(ROOT).as_posix() for folder in (".", "benchmarks", "envs", "deploy") for p in (ROOT / folder).glob("*.py"))
@@ -107,8 +107,8 @@ def test_a_command_its_program_would_refuse_is_refused_with_its_own_words():
 
 
 def readme_table(section: str, header: str) -> list[list[str]]:
-    """The cells of each row of the first table with this header after the README's heading `section`."""
-    text = (ROOT / "README.md").read_text().split(section, 1)[1].split(header, 1)[1]
+    """The cells of each row of the first table with this header under the README's heading `section`."""
+    text = readme_section(section).split(header, 1)[1]
     rows = []
     for line in text.splitlines()[2:]:  # the header's end, then its |---| line
         if not line.startswith("|"):
@@ -152,7 +152,7 @@ def test_the_readmes_hyperparameter_table_is_what_the_scripts_resolve():
     """Each row of the README's table of PPO+IL's and TRPO+IL's defaults, read back from the Args the
     script resolves for that env ('other': an env RL Zoo has no values for)."""
     ppo, trpo = load_script("ppo_il"), load_script("trpo_il")
-    rows = readme_table("### `ppo_il.py` and `trpo_il.py`", "| script | env | rollout |")
+    rows = readme_table("### `ppo_il.py` and `trpo_il.py`: trust-region methods started by imitation", "| script | env | rollout |")
     assert len(rows) == 6, rows
     for script, env_id, rollout, gamma, gae_lambda, epochs, minibatch, lr, other in rows:
         module = ppo if script == "`ppo_il.py`" else trpo
@@ -167,11 +167,6 @@ def test_the_readmes_hyperparameter_table_is_what_the_scripts_resolve():
         read = (int(rollout), int(epochs), int(minibatch), float(lr.removesuffix(" (critic)")), lr[len(lr.split()[0]):])
         assert read == resolved and (float(gamma), float(gae_lambda)) == (args.gamma, args.gae_lambda), (script, env_id)
         assert other == resolved_other, (script, env_id)
-
-
-def readme_section(heading: str) -> str:
-    """The README's text under this `## ` heading, up to the next one."""
-    return (ROOT / "README.md").read_text().split(f"\n{heading}\n", 1)[1].split("\n## ", 1)[0]
 
 
 def test_the_readmes_car_sections_state_the_defaults_in_code():

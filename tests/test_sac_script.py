@@ -18,7 +18,7 @@ import torch
 from gymnasium.envs.classic_control.pendulum import PendulumEnv
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from conftest import OTHER_PENDULUM_SPACES, ROOT, fill_the_disk_for, load_script, overflow_the_actor, overflow_the_policy_mean, small_checkpoint
+from conftest import OTHER_PENDULUM_SPACES, ROOT, fill_the_disk_for, load_script, overflow_the_actor, overflow_the_policy_mean, readme_section, small_checkpoint
 
 TINY = ["--hidden-size", "32", "--batch-size", "32", "--log-every", "50"]
 
@@ -534,7 +534,7 @@ def test_a_model_the_disk_cannot_hold_is_a_one_line_error(tmp_path, monkeypatch,
 
 
 def test_the_readmes_saved_policy_snippet_runs(tmp_path, sac):
-    section = (ROOT / "README.md").read_text().split("### Using a saved policy", 1)[1]
+    section = readme_section("### Using a saved policy")
     code = section.split("```python\n", 1)[1].split("```", 1)[0]
     path = tmp_path / "model.cleanrl_model"
     small_checkpoint(sac, path)
