@@ -1290,7 +1290,7 @@ if __name__ == "__main__":
         # the true next observation because the env is reset explicitly below, never automatically.
         rb.add(obs, action, reward, next_obs, terminated)  # Alg. 1, line 9: the real transition
         if not rl_acts:
-            # Alg. 1, lines 11-13: the fabricated transition, the agent's own action with the penalized reward
+            # Alg. 1, lines 12-14: the fabricated transition, the agent's own action with the penalized reward
             rb.add(obs, rl_action, penalized_reward(reward, baseline_action, rl_action, args.penalty_sigma2), next_obs, terminated, True)
             fabricated_transitions += 1
             if previous_rl_transition is not None and args.use_switch_penalty:

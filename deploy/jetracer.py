@@ -837,8 +837,8 @@ def train_holding(args: Train) -> dict:
                 if p_twin_reward is not None:  # paired: the twin's reward for this same step, so that a departure meets a departure
                     counters["paired_regret_per_step"] += max(0.0, p_twin_reward - reward)
                 with lock:
-                    rb.add(p_obs, p_action, reward, next_obs, off_track)
-                    if not p_rl_acted and p_baseline is not None:
+                    rb.add(p_obs, p_action, reward, next_obs, off_track)  # Alg. 1, line 9: the real transition
+                    if not p_rl_acted and p_baseline is not None:  # Alg. 1, lines 12-14: the fabricated transition
                         rb.add(p_obs, p_rl_action, jirl.penalized_reward(reward, p_baseline, p_rl_action, hp.penalty_sigma2), next_obs, off_track)
                         counters["fabricated_transitions"] += 1
             if off_track:
@@ -847,7 +847,7 @@ def train_holding(args: Train) -> dict:
                 previous = None
             obs = next_obs
 
-            # Alg. 1: the baseline's action (a human takeover is the baseline, intervening)
+            # Alg. 1, line 3: the baseline's action (a human takeover is the baseline, intervening)
             human = session.human_action()
             baseline_action = human if human is not None else follower(obs)
             with torch.inference_mode():
@@ -859,7 +859,7 @@ def train_holding(args: Train) -> dict:
             mean, log_std = mean[0].numpy().astype(np.float64), log_std[0].numpy().astype(np.float64)
             if human is not None:
                 rl_acts = False
-            else:  # Alg. 3
+            else:  # Alg. 1, line 4: the gate (Alg. 3)
                 c = jirl.guidance_c(hp.gate_c, step, guidance, hp.guidance_schedule)
                 rl_acts = gate.decide(jirl.squashed_log_prob(mean, log_std, baseline_action), jirl.divergence(mean, log_std, baseline_action), c)
                 if rl_acts and c == 0.0 and hp.deterministic_after_guidance:  # as the authors' car code did

@@ -216,7 +216,7 @@ def test_train_stores_each_step_as_the_script_does_and_counts_its_regret(tmp_pat
         np.testing.assert_array_equal(rows["next_obs"][i], after["obs"])
         assert rows["rewards"][i, 0] == pytest.approx(reward) and rows["terminations"][i, 0] == after["off"]
         i += 1
-        if not now["rl"]:  # Alg. 1, line 9: the fabricated transition (s, a^rl, r^p, s')
+        if not now["rl"]:  # Alg. 1, lines 12-14: the fabricated transition (s, a^rl, r^p, s')
             rl_action = rows["actions"][i]
             assert not np.array_equal(rl_action, now["action"])
             np.testing.assert_array_equal(rows["obs"][i], now["obs"])

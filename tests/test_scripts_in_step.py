@@ -1,8 +1,11 @@
 """The scripts are kept as near-copies: `diff sac_continuous.py jirl_sac_continuous.py` shows JIRL only,
 `diff ppo_il.py trpo_il.py` shows TRPO only, and the regret code every script repeats is the same text in
-all four; `.ci/run` runs the README's test command as printed. A change made to one copy only fails here."""
+all four; the lines of the paper's Alg. 1 that the code cites are cited alike wherever they are; `.ci/run`
+runs the README's test command as printed. A change made to one copy only fails here."""
 
 import ast
+import re
+from collections import defaultdict
 
 import numpy as np
 import pytest
@@ -111,3 +114,19 @@ def test_ci_runs_the_readmes_test_command_as_printed():
     readme = (ROOT / "README.md").read_text()
     command = readme.split("Run the tests (after the first command):", 1)[1].split("```bash\n", 1)[1].split("\n```", 1)[0]
     assert " -m pytest " in command and command in (ROOT / ".ci" / "run").read_text().splitlines()
+
+
+def test_each_line_of_algorithm_1_is_cited_for_the_same_step_everywhere():
+    """Where the script, the car's loop or a test implements a line of the paper's Alg. 1, its comment cites it
+    as "Alg. 1, line N: the step". The paper's algorithm2e listing numbers every line, the comment line
+    before the agent's action is sampled for the fabricated transition included: line 9 stores the real
+    transition and lines 12-14 the fabricated one. A number cited for two steps, or a step at two numbers,
+    fails here (a test cited line 9 for the fabricated transition, and the script lines 11-13)."""
+    cite = re.compile(r"Alg\. 1, lines? ([\d-]+): (the [\w']+(?: [\w']+)?)")
+    steps, where = defaultdict(set), defaultdict(list)
+    for path in sorted([*ROOT.glob("*.py"), *ROOT.glob("deploy/*.py"), *ROOT.glob("tests/*.py")]):
+        for lines, step in cite.findall(path.read_text()):
+            steps[lines].add(step)
+            where[lines].append(path.name)
+    assert dict(steps) == {"3": {"the baseline's action"}, "4": {"the gate"}, "9": {"the real transition"}, "12-14": {"the fabricated transition"}}, dict(where)
+    assert {"jirl_sac_continuous.py", "jetracer.py"} <= set(where["9"]) & set(where["12-14"])  # the script and the car alike
