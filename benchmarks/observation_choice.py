@@ -39,11 +39,12 @@ def candidates(frame_bgr: np.ndarray) -> dict[str, np.ndarray]:
 
 
 def ridge_r2(x: np.ndarray, y: np.ndarray, train: np.ndarray, test: np.ndarray, alpha: float = 1e-2) -> np.ndarray:
-    """Held-out R^2 of a ridge regression with a quadratic feature expansion of the top principal components."""
+    """Held-out R^2 of a ridge regression with a quadratic feature expansion of the top principal components,
+    each scaled to unit variance on the training rows, so that `alpha` is small beside every feature."""
     mean = x[train].mean(0)
     u, s, vt = np.linalg.svd(x[train] - mean, full_matrices=False)
     k = min(40, vt.shape[0])
-    z = (x - mean) @ vt[:k].T / (s[:k] + 1e-8)
+    z = (x - mean) @ vt[:k].T / (s[:k] / np.sqrt(len(train)) + 1e-8)  # a singular value is sqrt(rows) times the component's std
     iu = np.triu_indices(k)
     features = np.hstack([np.ones((len(z), 1)), z, (z[:, :, None] * z[:, None, :])[:, iu[0], iu[1]]])
     a = features[train]

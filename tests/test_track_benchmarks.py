@@ -1,0 +1,112 @@
+"""benchmarks/observation_choice.py and benchmarks/track_laps.py, whose tables BENCHMARKS.md quotes for
+JetRacerTrack-v0: the observation chosen there is the one the policies see, its R^2 is a held-out one,
+and a lap table's medians, gains and unreadable rows are what the laps give."""
+
+import statistics
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import ROOT, small_checkpoint
+from envs.car_interface import MASK_SHAPE, lane_mask
+from envs.jetracer_track import JetRacerTrackEnv
+
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import observation_choice  # noqa: E402
+import track_laps  # noqa: E402
+
+
+def test_the_chosen_candidate_is_the_mask_the_policies_see():
+    """BENCHMARKS.md chose "lane mask 10x14" from this benchmark's table; that row must measure the mask
+    `preprocess` gives the policies (on the track and on the car), on rendered frames and on noise."""
+    env = JetRacerTrackEnv(randomize_lighting=True)
+    frames = []
+    for seed in range(4):
+        env.reset(seed=seed)
+        frames.append(env.camera_frame_bgr())
+    env.close()
+    frames += list(np.random.default_rng(0).integers(0, 256, size=(2, 112, 112, 3), dtype=np.uint8))
+    assert MASK_SHAPE == (10, 14)
+    for frame in frames:
+        found = observation_choice.candidates(frame)
+        np.testing.assert_array_equal(found[f"lane mask {MASK_SHAPE[0]}x{MASK_SHAPE[1]}"], lane_mask(frame).reshape(-1))
+        assert {name: len(value) for name, value in found.items()} == {
+            "lane mask 5x7": 35, "lane mask 10x14": 140, "lane mask 20x28": 560, "lane mask 40x56": 2240, "grey 10x14": 140, "grey 20x28": 560,
+        }  # fmt: skip
+    assert any(0 < m < 1 for m in lane_mask(frames[0]).reshape(-1))  # the rendered lane's edge falls inside some cells
+
+
+def test_ridge_r2_is_the_held_out_fit_of_a_quadratic_model():
+    """On inputs of 5 dimensions, against an ordinary least-squares fit of the quadratic features of the raw
+    inputs, computed here: a target quadratic in them is read whole (R^2 near 1, squares included), an
+    independent one not at all (near 0, below what the training rows alone would show)."""
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(500, 5))
+    quadratic = 0.5 + x @ [1.0, -2.0, 0.0, 0.5, 0.0] + 0.8 * x[:, 0] ** 2 - 0.6 * x[:, 1] * x[:, 3] + 0.05 * rng.normal(size=500)
+    y = np.stack([quadratic, rng.normal(size=500)], 1)
+    order = rng.permutation(500)
+    train, test = order[:400], order[400:]
+
+    pairs = [(i, j) for i in range(5) for j in range(i, 5)]
+    features = np.hstack([np.ones((500, 1)), x, np.stack([x[:, i] * x[:, j] for i, j in pairs], 1)])
+    w, *_ = np.linalg.lstsq(features[train], y[train], rcond=None)
+    residual = y[test] - features[test] @ w
+    expected = 1 - ((residual - residual.mean(0)) ** 2).mean(0) / ((y[test] - y[test].mean(0)) ** 2).mean(0)
+
+    r2 = observation_choice.ridge_r2(x, y, train, test)
+    np.testing.assert_allclose(r2, expected, atol=1e-4)
+    assert r2[0] > 0.99 and -0.2 < r2[1] < 0.05
+
+
+def test_a_lap_row_gives_the_median_and_the_gain_over_the_baseline():
+    assert track_laps.row("p", [10.0, 14.0, 12.0], 1, 2, 15.0) == "| p | 3 | 12.00 | 1/2 | 20 % |"
+    assert track_laps.row("p", [10.0, 12.0, 14.0, 16.0], 0, 2, 10.0) == "| p | 4 | 13.00 | 0/2 | -30 % |"  # slower: a negative gain
+    assert track_laps.row("p", [], 2, 2, 15.0) == "| p | 0 | nan | 2/2 | – |"  # no lap: no median, no gain
+    assert track_laps.row("baseline", [13.0], 0, 1, 0.0) == "| baseline | 1 | 13.00 | 0/1 | – |"  # the baseline made no lap
+
+
+def test_drive_counts_the_episodes_that_left_the_lane_and_resets_the_policy():
+    class HardLeft:
+        resets = 0
+
+        def reset(self):
+            self.resets += 1
+
+        def __call__(self, obs):
+            return np.array([1.0, 1.0], np.float32)  # full left at full throttle: off the lane within seconds
+
+    policy = HardLeft()
+    laps, off_lane = track_laps.drive(policy, 2, 7)
+    assert (laps, off_lane, policy.resets) == ([], 2, 2)
+
+
+def test_the_lap_table_reads_each_checkpoint_and_reports_one_trained_elsewhere(tmp_path, monkeypatch, capsys, sac):
+    small_checkpoint(sac, tmp_path / "pendulum.cleanrl_model")
+    small_checkpoint(sac, tmp_path / "track.cleanrl_model", "JetRacerTrack-v0")
+    laps = {"baseline": [13.0, 14.0, 13.5], "policy": [7.0, 7.5]}
+    driven = []
+
+    def drive(policy, episodes, seed_offset):
+        driven.append((episodes, seed_offset))
+        return (laps["policy"], 1) if driven[1:] else (laps["baseline"], 0)
+
+    monkeypatch.setattr(track_laps, "drive", drive)
+    monkeypatch.setattr(sys, "argv", ["track_laps.py", str(tmp_path / "pendulum.cleanrl_model"), str(tmp_path / "track.cleanrl_model"), "--episodes", "3"])
+    track_laps.main()
+    rows = capsys.readouterr().out.splitlines()
+    gain = 100 * (1 - statistics.median(laps["policy"]) / statistics.median(laps["baseline"]))
+    assert rows[3] == "| baseline (lane follower) | 3 | 13.50 | 0/3 | – |".replace("–", f"{0:.0f} %")
+    assert rows[4] == f"| {tmp_path / 'pendulum.cleanrl_model'} | unreadable: trained on Pendulum-v1, not JetRacerTrack-v0 | | | |"
+    assert rows[5] == f"| {tmp_path / 'track.cleanrl_model'} | 2 | 7.25 | 1/3 | {gain:.0f} % |"
+    assert driven == [(3, 1_000_000), (3, 1_000_000)]  # the baseline and the track's policy, on the scripts' evaluation seeds
+
+
+@pytest.mark.parametrize("content", [b"", b"not a checkpoint"])
+def test_a_file_that_is_no_checkpoint_is_an_unreadable_row(tmp_path, monkeypatch, capsys, content):
+    (tmp_path / "bad.cleanrl_model").write_bytes(content)
+    monkeypatch.setattr(track_laps, "drive", lambda policy, episodes, seed_offset: ([13.0], 0))
+    monkeypatch.setattr(sys, "argv", ["track_laps.py", str(tmp_path / "bad.cleanrl_model"), "--episodes", "1"])
+    track_laps.main()
+    row = capsys.readouterr().out.splitlines()[-1]
+    assert row.startswith(f"| {tmp_path / 'bad.cleanrl_model'} | unreadable: ") and row.endswith(" | | | |") and "\n" not in row
