@@ -60,13 +60,13 @@ def test_ridge_r2_is_the_held_out_fit_of_a_quadratic_model():
 
 
 def test_a_lap_row_gives_the_median_and_the_gain_over_the_baseline():
-    assert track_laps.row("p", [10.0, 14.0, 12.0], 1, 2, 15.0) == "| p | 3 | 12.00 | 1/2 | 20 % |"
+    assert track_laps.row("p", [10.0, 15.0, 11.0], 1, 2, 13.75) == "| p | 3 | 11.00 | 1/2 | 20 % |"  # the median, not the mean (12)
     assert track_laps.row("p", [10.0, 12.0, 14.0, 16.0], 0, 2, 10.0) == "| p | 4 | 13.00 | 0/2 | -30 % |"  # slower: a negative gain
     assert track_laps.row("p", [], 2, 2, 15.0) == "| p | 0 | nan | 2/2 | – |"  # no lap: no median, no gain
     assert track_laps.row("baseline", [13.0], 0, 1, 0.0) == "| baseline | 1 | 13.00 | 0/1 | – |"  # the baseline made no lap
 
 
-def test_drive_counts_the_episodes_that_left_the_lane_and_resets_the_policy():
+def test_drive_counts_the_episodes_that_left_the_lane_and_resets_the_policy(monkeypatch):
     class HardLeft:
         resets = 0
 
@@ -76,15 +76,25 @@ def test_drive_counts_the_episodes_that_left_the_lane_and_resets_the_policy():
         def __call__(self, obs):
             return np.array([1.0, 1.0], np.float32)  # full left at full throttle: off the lane within seconds
 
+    seeds = []
+
+    def make_env(env_id):
+        env = real_make_env(env_id)
+        reset = env.reset
+        env.reset = lambda seed=None: seeds.append(seed) or reset(seed=seed)
+        return env
+
+    real_make_env = track_laps.make_env
+    monkeypatch.setattr(track_laps, "make_env", make_env)
     policy = HardLeft()
     laps, off_lane = track_laps.drive(policy, 2, 7)
-    assert (laps, off_lane, policy.resets) == ([], 2, 2)
+    assert (laps, off_lane, policy.resets, seeds) == ([], 2, 2, [7, 8])  # episode i from seed offset + i
 
 
 def test_the_lap_table_reads_each_checkpoint_and_reports_one_trained_elsewhere(tmp_path, monkeypatch, capsys, sac):
     small_checkpoint(sac, tmp_path / "pendulum.cleanrl_model")
     small_checkpoint(sac, tmp_path / "track.cleanrl_model", "JetRacerTrack-v0")
-    laps = {"baseline": [13.0, 14.0, 13.5], "policy": [7.0, 7.5]}
+    laps = {"baseline": [13.0, 14.5, 13.5], "policy": [7.0, 7.5]}
     driven = []
 
     def drive(policy, episodes, seed_offset):
@@ -108,5 +118,16 @@ def test_a_file_that_is_no_checkpoint_is_an_unreadable_row(tmp_path, monkeypatch
     monkeypatch.setattr(track_laps, "drive", lambda policy, episodes, seed_offset: ([13.0], 0))
     monkeypatch.setattr(sys, "argv", ["track_laps.py", str(tmp_path / "bad.cleanrl_model"), "--episodes", "1"])
     track_laps.main()
-    row = capsys.readouterr().out.splitlines()[-1]
-    assert row.startswith(f"| {tmp_path / 'bad.cleanrl_model'} | unreadable: ") and row.endswith(" | | | |") and "\n" not in row
+    rows = capsys.readouterr().out.splitlines()
+    assert len(rows) == 5 and rows[-1].startswith(f"| {tmp_path / 'bad.cleanrl_model'} | unreadable: ") and rows[-1].endswith(" | | | |")
+
+
+def test_an_error_of_several_lines_stays_one_row_of_the_table(monkeypatch, capsys):
+    def unreadable(path):
+        raise ValueError("first line\n  second line")
+
+    monkeypatch.setattr(track_laps, "track_policy", unreadable)
+    monkeypatch.setattr(track_laps, "drive", lambda policy, episodes, seed_offset: ([13.0], 0))
+    monkeypatch.setattr(sys, "argv", ["track_laps.py", "some.cleanrl_model", "--episodes", "1"])
+    track_laps.main()
+    assert capsys.readouterr().out.splitlines()[-1] == "| some.cleanrl_model | unreadable: first line second line | | | |"
