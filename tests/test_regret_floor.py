@@ -1,6 +1,6 @@
 """benchmarks/regret_floor.py: the paired regret of a fixed policy, against numbers computed here;
-benchmarks/learning.py's table from the logs; the benchmark tools refusing counts out of range, and
-ending their child process on SIGTERM."""
+benchmarks/learning.py's table from the logs; relu_variants.py's critics computing the script's; the
+benchmark tools refusing counts out of range, and ending their child process on SIGTERM."""
 
 import dataclasses
 import sys
@@ -250,6 +250,29 @@ def test_relu_variants_stops_at_a_failed_measurement_showing_why(monkeypatch, tm
     with pytest.raises(SystemExit, match="exited with 1:\nTraceback ...\nRuntimeError: the variant broke"):
         relu_variants.main()
     assert (tmp_path / "sac_copy.py").exists() and (tmp_path / "sac_fused.py").exists()
+
+
+def test_the_relu_variants_compute_what_the_script_computes(tmp_path):
+    """relu_variants.py times two rewrites of the critics (a ReLU that copies, and each hidden layer fused
+    into one autograd node with a hand-written backward). Its figures compare like with like only if
+    each variant gives the script's Q-values and the script's gradients, for the weights and the inputs."""
+    import relu_variants
+    from side_by_side import load_module
+
+    paths = relu_variants.write_variants(tmp_path)
+    assert paths["fused"].read_text().count("EnsembleLinearReLU.apply") == 2 and "inplace=True" not in paths["copy"].read_text()
+    obs, actions = torch.randn(32, 3, dtype=torch.float64), torch.rand(32, 1, dtype=torch.float64) * 2 - 1
+    found = {}
+    for name, path in paths.items():
+        torch.manual_seed(0)
+        qf = load_module(str(path), f"sac_{name}").SoftQNetwork(3, 1, 16).double()
+        inputs = obs.clone().requires_grad_()
+        q = qf(inputs, actions)
+        (q.square().sum() + q[0].sum()).backward()  # the two critics' gradients differ
+        found[name] = [q.detach(), inputs.grad, *(p.grad for p in qf.parameters())]
+    for name in ("copy", "fused"):
+        for mine, script in zip(found[name], found["now"]):
+            torch.testing.assert_close(mine, script, rtol=1e-12, atol=1e-12)
 
 
 def test_sigterm_ends_the_training_a_benchmark_waits_for(tmp_path):
