@@ -1,7 +1,8 @@
 """Training speed of ppo_il.py and trpo_il.py against Stable-Baselines3's PPO and sb3-contrib's TRPO.
 
 Same settings on both sides: one env, the same rollout length, epochs or critic updates, minibatch,
-discount and network width (64 x 64, tanh), one torch thread, alternating which runs first. Our
+discount and network width (64 x 64, tanh), observation and reward normalisation where our script
+normalises (TRPO on Lunar Lander), one torch thread, alternating which runs first. Our
 scripts run with a minimal imitation phase (--il-steps 1000, one epoch) and regret off, so both
 sides do the same RL work; SPS is env steps over the process's whole wall time (imports included,
 for both). Prints a markdown table with medians and the median of per-pair ratios.
@@ -25,6 +26,7 @@ SETTINGS = {
     ("trpo", "Pendulum-v1"): dict(n_steps=2048, batch_size=128, n_critic_updates=15, gamma=0.9, gae_lambda=0.95, learning_rate=1e-3),
     ("trpo", "LunarLanderContinuous-v3"): dict(n_steps=2048, batch_size=128, n_critic_updates=20, gamma=0.99, gae_lambda=0.95, learning_rate=1e-3),
 }
+NORMALIZED = {("trpo", "LunarLanderContinuous-v3")}  # observations and rewards normalised (SB3's VecNormalize), as our script does there
 
 
 def sb3_worker(algo: str, env_id: str, steps: int, seed: int) -> None:
@@ -35,8 +37,15 @@ def sb3_worker(algo: str, env_id: str, steps: int, seed: int) -> None:
         from stable_baselines3 import PPO as Algo
     else:
         from sb3_contrib import TRPO as Algo
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    settings = SETTINGS[(algo, env_id)]
+    env = make_vec_env(env_id, n_envs=1, seed=seed)
+    if (algo, env_id) in NORMALIZED:
+        env = VecNormalize(env, norm_obs=True, norm_reward=True, gamma=settings["gamma"])
     policy_kwargs = {"net_arch": {"pi": [64, 64], "vf": [64, 64]}, "activation_fn": torch.nn.Tanh}
-    model = Algo("MlpPolicy", env_id, seed=seed, device="cpu", policy_kwargs=policy_kwargs, **SETTINGS[(algo, env_id)])
+    model = Algo("MlpPolicy", env, seed=seed, device="cpu", policy_kwargs=policy_kwargs, **settings)
     model.learn(total_timesteps=steps)
 
 

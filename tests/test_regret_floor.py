@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import ROOT, small_checkpoint
+from conftest import ROOT, load_script, small_checkpoint
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import regret_floor  # noqa: E402
@@ -273,6 +273,28 @@ def test_the_relu_variants_compute_what_the_script_computes(tmp_path):
     for name in ("copy", "fused"):
         for mine, script in zip(found[name], found["now"]):
             torch.testing.assert_close(mine, script, rtol=1e-12, atol=1e-12)
+
+
+def test_the_trust_region_speed_benchmark_gives_sb3_the_settings_our_scripts_resolve():
+    """sps_trust_region.py compares SPS "at the same settings": each SB3 or sb3-contrib setting it spells out
+    is the one ppo_il.py or trpo_il.py resolves for that env (rollout, minibatch, epochs or critic updates,
+    discount, GAE lambda, learning rate, entropy coefficient), and SB3 normalises observations and rewards
+    exactly where our script does."""
+    import sps_trust_region
+
+    for (algo, env_id), settings in sps_trust_region.SETTINGS.items():
+        script = load_script(f"{algo}_il")
+        args = script.resolve_hyperparameters(script.Args(env_id=env_id))
+        ours = dict(n_steps=args.num_steps, gamma=args.gamma, gae_lambda=args.gae_lambda, learning_rate=args.learning_rate)
+        if algo == "ppo":
+            ours |= dict(batch_size=args.num_steps // args.num_minibatches, n_epochs=args.update_epochs, ent_coef=args.ent_coef)
+            normalised = False  # ppo_il.py has no normalisation
+        else:
+            ours |= dict(batch_size=args.critic_batch_size, n_critic_updates=args.n_critic_updates)
+            normalised = args.norm_obs and args.norm_reward
+            assert args.norm_obs == args.norm_reward
+        assert ({"ent_coef": 0.0} if algo == "ppo" else {}) | settings == ours, (algo, env_id)  # SB3's PPO defaults ent_coef to 0
+        assert ((algo, env_id) in sps_trust_region.NORMALIZED) == normalised, (algo, env_id)
 
 
 def test_sigterm_ends_the_training_a_benchmark_waits_for(tmp_path):
