@@ -38,6 +38,7 @@ def sb3_worker(width: int, steps: int, learning_starts: int, seed: int) -> None:
         batch_size=256,
         tau=0.005,
         gamma=0.99,
+        ent_coef="auto_0.2",  # tuned from 0.2, as our scripts' --alpha starts it (SB3 starts from 1)
         train_freq=1,
         gradient_steps=1,
         policy_kwargs={"net_arch": [width, width]},

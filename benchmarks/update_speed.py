@@ -66,8 +66,8 @@ def sb3_worker(width: int, steps: int) -> float:
     from stable_baselines3 import SAC
 
     torch.set_num_threads(1)
-    model = SAC("MlpPolicy", "Pendulum-v1", learning_rate=3e-4, learning_starts=100, batch_size=256, train_freq=1,
-                gradient_steps=1, policy_kwargs={"net_arch": [width, width]}, seed=0, device="cpu")  # fmt: skip
+    model = SAC("MlpPolicy", "Pendulum-v1", learning_rate=3e-4, learning_starts=100, batch_size=256, train_freq=1, gradient_steps=1,
+                ent_coef="auto_0.2", policy_kwargs={"net_arch": [width, width]}, seed=0, device="cpu")  # fmt: skip
     model.learn(1000)  # fills the buffer past learning_starts and runs the first updates
     obs = np.zeros(3, dtype=np.float32)
     for _ in range(50):

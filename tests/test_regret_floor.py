@@ -4,6 +4,7 @@ benchmark tools refusing counts out of range, and ending their child process on 
 
 import dataclasses
 import sys
+import time
 
 import gymnasium as gym
 import numpy as np
@@ -295,6 +296,71 @@ def test_the_trust_region_speed_benchmark_gives_sb3_the_settings_our_scripts_res
             assert args.norm_obs == args.norm_reward
         assert ({"ent_coef": 0.0} if algo == "ppo" else {}) | settings == ours, (algo, env_id)  # SB3's PPO defaults ent_coef to 0
         assert ((algo, env_id) in sps_trust_region.NORMALIZED) == normalised, (algo, env_id)
+
+
+class FakeSAC:
+    """Stable-Baselines3's SAC as the SAC speed benchmarks call it, recording what it is given."""
+
+    made: dict = {}
+
+    def __init__(self, policy, env, **kwargs):
+        FakeSAC.made = dict(kwargs, policy=policy, env=env)
+        self.start_time = 0
+
+    def learn(self, total_timesteps):
+        self.start_time = time.time_ns() - 10**9
+
+    def predict(self, obs):
+        return obs[:1], None
+
+    def train(self, gradient_steps, batch_size):
+        FakeSAC.made.setdefault("trained_with", set()).add((gradient_steps, batch_size))
+
+
+@pytest.mark.parametrize("tool", ["sps_vs_sb3", "update_speed"])
+def test_the_sac_speed_benchmarks_give_sb3_the_settings_ours_train_with(tool, monkeypatch, tmp_path, capsys):
+    """Both compare SPS "with the same hyperparameters": SB3's learning rate, batch, replay, discount,
+    Polyak coefficient, update schedule, widths and entropy tuning are those of the command or the
+    `Args` they run our SAC with."""
+    import importlib
+
+    import tyro
+
+    monkeypatch.setitem(sys.modules, "stable_baselines3", type(sys)("stable_baselines3"))
+    monkeypatch.setattr(sys.modules["stable_baselines3"], "SAC", FakeSAC, raising=False)
+    module = importlib.import_module(tool)
+    sac = load_script("sac_continuous")
+    if tool == "sps_vs_sb3":
+        module.sb3_worker(64, 5000, 500, 3)
+        assert capsys.readouterr().out.startswith("SPS: ")
+        args = tyro.cli(sac.Args, args=module.command("sac_continuous", 64, 5000, 500, 3, tmp_path)[2:])
+        assert module.command("jirl_sac_continuous", 64, 5000, 500, 3, tmp_path)[2:] == module.command("sac_continuous", 64, 5000, 500, 3, tmp_path)[2:]
+        made = FakeSAC.made
+        assert (made.pop("learning_starts"), made.pop("seed"), made.pop("env")) == (args.learning_starts, args.seed, args.env_id)
+    else:
+        module.sb3_worker(64, 3)
+        made = FakeSAC.made
+        assert made.pop("trained_with") == {(1, 256)} and made.pop("env") == "Pendulum-v1"
+        made.pop("learning_starts"), made.pop("seed")  # SB3's warm-up; ours samples a filled buffer
+        built = []
+
+        def load_module(script):  # the script training_step times, its agent's Args recorded
+            loaded = real_load_module(script)
+            monkeypatch.setattr(loaded, "SoftActorCritic", lambda obs_dim, act_dim, args: built.append(args) or real_agent(obs_dim, act_dim, args))
+            return loaded
+
+        real_load_module, real_agent = module.load_module, sac.SoftActorCritic
+        monkeypatch.setattr(module, "load_module", load_module)
+        module.training_step(str(ROOT / "sac_continuous.py"), 64)
+        (args,) = built
+    assert args.policy_lr == args.q_lr and args.policy_frequency == args.target_network_frequency == 1 and args.autotune
+    expected = dict(policy="MlpPolicy", learning_rate=args.policy_lr, batch_size=args.batch_size, train_freq=1, gradient_steps=1,
+                    ent_coef=f"auto_{args.alpha}", policy_kwargs={"net_arch": [args.hidden_size] * 2}, device="cpu")  # fmt: skip
+    if tool == "sps_vs_sb3":
+        expected |= dict(buffer_size=int(args.buffer_size), tau=args.tau, gamma=args.gamma)
+    else:  # SB3's defaults for these
+        assert (args.tau, args.gamma) == (0.005, 0.99)
+    assert made == expected
 
 
 def test_sigterm_ends_the_training_a_benchmark_waits_for(tmp_path):
