@@ -363,6 +363,19 @@ def test_the_sac_speed_benchmarks_give_sb3_the_settings_ours_train_with(tool, mo
     assert made == expected
 
 
+def test_step_checks_times_the_divergence_checks_the_loops_run():
+    """benchmarks/step_checks.py times each training loop's check for a diverged agent "as the loops write
+    them", in copies of its own: each copy's condition is, word for word, the one in its loop."""
+    import re
+
+    copies = re.findall(r"if check and (not math\.isfinite\(.+\)):\n", (ROOT / "benchmarks" / "step_checks.py").read_text())
+    loops = ["sac_continuous.py", "jirl_sac_continuous.py", "ppo_il.py", "deploy/jetracer.py"]  # the order of sac_, jirl_, ppo_ and car_action
+    assert len(copies) == len(loops)
+    for condition, loop in zip(copies, loops):
+        assert f"if {condition}:  #" in (ROOT / loop).read_text(), (condition, loop)
+    assert f"if {copies[2]}:  #" in (ROOT / "trpo_il.py").read_text()  # TRPO's rollout, timed as PPO's
+
+
 def test_sigterm_ends_the_training_a_benchmark_waits_for(tmp_path):
     """`kill` reaches the benchmark alone; the training it started must not run on unseen."""
     import os
