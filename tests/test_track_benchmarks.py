@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import ROOT, small_checkpoint
+from conftest import ROOT, figures_stated, small_checkpoint
 from envs.car_interface import MASK_SHAPE, lane_mask
 from envs.jetracer_track import JetRacerTrackEnv
 
@@ -35,6 +35,27 @@ def test_the_chosen_candidate_is_the_mask_the_policies_see():
             "lane mask 5x7": 35, "lane mask 10x14": 140, "lane mask 20x28": 560, "lane mask 40x56": 2240, "grey 10x14": 140, "grey 20x28": 560,
         }  # fmt: skip
     assert any(0 < m < 1 for m in lane_mask(frames[0]).reshape(-1))  # the rendered lane's edge falls inside some cells
+
+
+def test_the_readme_quotes_the_chosen_rows_figures():
+    """The README's account of the observation (the R^2 of the chosen mask, as good as masks 16 times
+    larger, better than grey images of its size) is what BENCHMARKS.md's table of this benchmark gives."""
+    benchmarks = (ROOT / "BENCHMARKS.md").read_text()
+    table = benchmarks.split("Observation choice: `python benchmarks/observation_choice.py", 1)[1].split("\n\n", 2)[1]
+    rows = {}
+    for line in table.splitlines()[2:]:
+        name, size, cross_track, heading = [cell.strip(" *") for cell in line.strip("|").split("|")]
+        rows[name.replace(" (chosen)", "").replace("*", "")] = (int(size.replace(",", "")), float(cross_track.split()[0]), float(heading.split()[0]))
+    chosen = [line for line in table.splitlines() if "(chosen)" in line]
+    assert len(chosen) == 1 and f"lane mask {MASK_SHAPE[0]}×{MASK_SHAPE[1]}" in chosen[0]
+    size, cross_track, heading = rows[f"lane mask {MASK_SHAPE[0]}×{MASK_SHAPE[1]}"]
+    assert size == MASK_SHAPE[0] * MASK_SHAPE[1]
+    ((stated_cross_track, stated_heading),) = figures_stated((ROOT / "README.md").read_text(), r"reads cross-track error \(R² ([\d.]+)\) and heading error \(([\d.]+)\) from the 10×14 mask")
+    assert (stated_cross_track, stated_heading) == (round(cross_track, 3), round(heading, 2))
+    larger = rows[f"lane mask {4 * MASK_SHAPE[0]}×{4 * MASK_SHAPE[1]}"]
+    assert larger[0] == 16 * size and abs(larger[2] - heading) < 0.005 and larger[1] == cross_track  # "as well as from masks 16 times larger"
+    grey = rows[f"grey {MASK_SHAPE[0]}×{MASK_SHAPE[1]}"]
+    assert grey[0] == size and grey[1] < cross_track and grey[2] < heading  # "better than from grey images of the same size"
 
 
 def test_ridge_r2_is_the_held_out_fit_of_a_quadratic_model():
