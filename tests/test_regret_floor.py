@@ -341,7 +341,7 @@ def test_the_sac_speed_benchmarks_give_sb3_the_settings_ours_train_with(tool, mo
         module.sb3_worker(64, 3)
         made = FakeSAC.made
         assert made.pop("trained_with") == {(1, 256)} and made.pop("env") == "Pendulum-v1"
-        made.pop("learning_starts"), made.pop("seed")  # SB3's warm-up; ours samples a filled buffer
+        del made["learning_starts"], made["seed"]  # SB3's warm-up and seed; ours samples a filled buffer
         built = []
 
         def load_module(script):  # the script training_step times, its agent's Args recorded
