@@ -1,6 +1,8 @@
 """benchmarks/regret_floor.py: the paired regret of a fixed policy, against numbers computed here;
-benchmarks/learning.py's table from the logs; relu_variants.py's critics computing the script's; the
-benchmark tools refusing counts out of range, and ending their child process on SIGTERM."""
+benchmarks/learning.py's table from the logs; the speed comparisons comparing like with like (SB3's
+settings are ours, relu_variants.py's critics compute the script's, step_checks.py's and tracking_cost.py's
+copies are the scripts' code); the benchmark tools refusing counts out of range, and ending their child
+process on SIGTERM."""
 
 import dataclasses
 import sys
@@ -374,6 +376,26 @@ def test_step_checks_times_the_divergence_checks_the_loops_run():
     for condition, loop in zip(copies, loops):
         assert f"if {condition}:  #" in (ROOT / loop).read_text(), (condition, loop)
     assert f"if {copies[2]}:  #" in (ROOT / "trpo_il.py").read_text()  # TRPO's rollout, timed as PPO's
+
+
+def test_tracking_cost_times_the_script_with_only_its_w_and_b_start_changed():
+    """tracking_cost.py's third form is sac_continuous.py with CleanRL's `sync_tensorboard=True` in place of
+    the named TensorBoard folder: two lines differ, and the text is still Python. A change to how the script
+    starts W&B must reach the benchmark (it stops at its own check), not make it time something else."""
+    import ast
+
+    import tracking_cost
+
+    script = (ROOT / "sac_continuous.py").read_text()
+    rewritten = tracking_cost.with_sync_tensorboard(script)
+    ast.parse(rewritten)
+    before, after = script.splitlines(), rewritten.splitlines()
+    changed = [(old.strip(), new.strip()) for old, new in zip(before, after) if old != new]
+    assert len(before) == len(after) and len(changed) == 2
+    assert changed[0][0].startswith('wandb.tensorboard.patch(root_logdir=f"runs/{run_name}")') and changed[0][1].startswith("pass")
+    assert changed[1][1] == changed[1][0].replace("save_code=True)", "save_code=True, sync_tensorboard=True)") != changed[1][0]
+    with pytest.raises(AssertionError, match="start_tracking changed"):
+        tracking_cost.with_sync_tensorboard(script.replace("save_code=True)", "save_code=False)"))
 
 
 def test_sigterm_ends_the_training_a_benchmark_waits_for(tmp_path):
