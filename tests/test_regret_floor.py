@@ -335,8 +335,9 @@ def test_the_sac_speed_benchmarks_give_sb3_the_settings_ours_train_with(tool, mo
     if tool == "sps_vs_sb3":
         module.sb3_worker(64, 5000, 500, 3)
         assert capsys.readouterr().out.startswith("SPS: ")
-        args = tyro.cli(sac.Args, args=module.command("sac_continuous", 64, 5000, 500, 3, tmp_path)[2:])
-        assert module.command("jirl_sac_continuous", 64, 5000, 500, 3, tmp_path)[2:] == module.command("sac_continuous", 64, 5000, 500, 3, tmp_path)[2:]
+        options = module.command("sac_continuous", 64, 5000, 500, 3, tmp_path)[2:]
+        assert module.command("jirl_sac_continuous", 64, 5000, 500, 3, tmp_path)[2:] == options  # JIRL runs with SAC's options
+        args = tyro.cli(sac.Args, args=options)
         made = FakeSAC.made
         assert (made.pop("learning_starts"), made.pop("seed"), made.pop("env")) == (args.learning_starts, args.seed, args.env_id)
     else:
