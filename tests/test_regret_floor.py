@@ -1,7 +1,7 @@
 """benchmarks/regret_floor.py: the paired regret of a fixed policy, against numbers computed here;
 benchmarks/learning.py's table from the logs; the speed comparisons comparing like with like (SB3's
 settings are ours, relu_variants.py's critics compute the script's, step_checks.py's and tracking_cost.py's
-copies are the scripts' code); the benchmark tools refusing counts out of range, and ending their child
+copies are the scripts' code, profile_sac.py profiles the script's default update); the benchmark tools refusing counts out of range, and ending their child
 process on SIGTERM."""
 
 import dataclasses
@@ -364,6 +364,45 @@ def test_the_sac_speed_benchmarks_give_sb3_the_settings_ours_train_with(tool, mo
     else:  # SB3's defaults for these
         assert (args.tau, args.gamma) == (0.005, 0.99)
     assert made == expected
+
+
+def test_profile_sac_profiles_the_scripts_default_update_after_its_warm_up(monkeypatch, capsys):
+    """BENCHMARKS.md's profile of one SAC step: the script's acting and update at the width asked, with
+    the script's default delayed actor update, 30 steps of warm-up outside the profiler, the time per
+    profiled step, and a table of the rows asked for."""
+    import math
+    import types
+
+    import profile_sac
+
+    sac = load_script("sac_continuous")
+    made, stepped = [], []
+
+    def training_step(script, width, **options):
+        made.append((script, width, options))
+        step = real_training_step(script, width, **options)
+        return lambda i: stepped.append(i) or step(i)
+
+    real_training_step = profile_sac.training_step
+    monkeypatch.setattr(profile_sac, "training_step", training_step)
+    monkeypatch.setattr(profile_sac, "time", types.SimpleNamespace(perf_counter=iter([1.0, 1.6]).__next__))
+    monkeypatch.setattr(sys, "argv", ["profile_sac.py", "--width", "8", "--steps", "3", "--rows", "1000"])
+    profile_sac.main()
+    out = capsys.readouterr().out
+    frequency = sac.Args().policy_frequency
+    assert frequency > 1 and made == [(str(ROOT / "sac_continuous.py"), 8, {"policy_frequency": frequency})]
+    assert stepped == [*range(30), *range(3)]
+    assert out.startswith("width 8: 200.00 ms per step under the profiler\n")  # 0.6 s over 3 steps
+    (adam,) = [line.split() for line in out.splitlines() if line.split()[:1] == ["Optimizer.step#Adam.step"]]
+    # one critic step per update, and the actor's (alpha's with it) `frequency` times every `frequency`
+    # updates: the 3 profiled steps only
+    assert int(adam[-1]) == 3 + frequency * math.ceil(3 / frequency)
+
+    monkeypatch.setattr(profile_sac, "time", types.SimpleNamespace(perf_counter=iter([1.0, 1.6]).__next__))
+    monkeypatch.setattr(sys, "argv", ["profile_sac.py", "--width", "8", "--steps", "3", "--rows", "2"])
+    profile_sac.main()
+    rules = [i for i, line in enumerate(capsys.readouterr().out.splitlines()) if line.startswith("---")]
+    assert len(rules) == 3 and rules[2] - rules[1] == 3  # two rows between the header's rule and the last
 
 
 def test_step_checks_times_the_divergence_checks_the_loops_run():

@@ -1,7 +1,9 @@
-"""benchmarks/observation_choice.py and benchmarks/track_laps.py, whose tables BENCHMARKS.md quotes for
-JetRacerTrack-v0: the observation chosen there is the one the policies see, its R^2 is a held-out one,
-and a lap table's medians, gains and unreadable rows are what the laps give."""
+"""benchmarks/observation_choice.py, benchmarks/track_laps.py and benchmarks/track_speed.py, whose figures
+BENCHMARKS.md quotes for JetRacerTrack-v0: the observation chosen there is the one the policies see, its
+R^2 is a held-out one, a lap table's medians, gains and unreadable rows are what the laps give, and the
+track's speed is its steps over the time they took."""
 
+import re
 import statistics
 import sys
 
@@ -152,3 +154,65 @@ def test_an_error_of_several_lines_stays_one_row_of_the_table(monkeypatch, capsy
     monkeypatch.setattr(sys, "argv", ["track_laps.py", "some.cleanrl_model", "--episodes", "1"])
     track_laps.main()
     assert capsys.readouterr().out.splitlines()[-1] == "| some.cleanrl_model | unreadable: first line second line | | | |"
+
+
+def test_track_speed_divides_the_steps_by_each_clock_and_restarts_the_baseline_with_each_episode(monkeypatch, capsys):
+    """BENCHMARKS.md's steps per second of the track: each repeat's steps over the time each clock measured
+    around them, the median of the repeats; every episode, seeded or not, starts with a fresh baseline."""
+    import types
+
+    import track_speed
+
+    class Track:
+        """episodes of 5 steps, truncated and terminated in turn; each observation a new one"""
+
+        def __init__(self):
+            self.seeds, self.t, self.episode_t, self.obs = [], 0, 0, None
+
+        def reset(self, seed=None):
+            self.seeds.append(seed)
+            self.episode_t, self.obs = 0, ("reset", len(self.seeds))
+            return self.obs, {}
+
+        def step(self, action):
+            assert action == ("acted on", self.obs)  # the baseline's action on the latest observation
+            self.t += 1
+            self.episode_t += 1
+            self.obs = ("step", self.t)
+            end = self.episode_t == 5
+            return self.obs, 0.0, end and len(self.seeds) % 2 == 0, end and len(self.seeds) % 2 == 1, {}
+
+    class Baseline:
+        resets = 0
+
+        def reset(self):
+            self.resets += 1
+
+        def __call__(self, obs):
+            return ("acted on", obs)
+
+    track, baseline = Track(), Baseline()
+    monkeypatch.setattr(track_speed, "make_env", lambda env_id: env_id == "JetRacerTrack-v0" and track)
+    monkeypatch.setattr(track_speed, "get_baseline", lambda env_id: env_id == "JetRacerTrack-v0" and baseline)
+    wall, cpu = [10.0, 14.0, 20.0, 21.0, 30.0, 33.0], [0.0, 1.0, 5.0, 7.0, 9.0, 9.5]  # per repeat: 4, 1, 3 s and 1, 2, 0.5 s
+    monkeypatch.setattr(track_speed, "time", types.SimpleNamespace(perf_counter=iter(wall).__next__, process_time=iter(cpu).__next__))
+    monkeypatch.setattr(sys, "argv", ["track_speed.py", "--steps", "12", "--repeats", "3"])
+    track_speed.main()
+    # per repeat, 12/4, 12/1, 12/3 = 3, 12, 4 steps per wall-clock second (median 4, mean 6.3);
+    # 12/1, 12/2, 12/0.5 = 12, 6, 24 per CPU-second (median 12, mean 14)
+    assert capsys.readouterr().out == (
+        "JetRacerTrack-v0, lane-follower actions, 12 steps x 3 (medians): 12 steps per CPU-second, 4 steps per wall-clock second\n"
+    )
+    assert track.t == 36
+    # each repeat starts from its seed, then 2 episodes end within its 12 steps (at 5 and 10)
+    assert track.seeds == [0, None, None, 1, None, None, 2, None, None]
+    assert baseline.resets == len(track.seeds)
+
+
+def test_track_speed_drives_the_real_track():
+    import subprocess
+
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "track_speed.py"), "--steps", "30", "--repeats", "2"],
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert re.fullmatch(r"JetRacerTrack-v0, lane-follower actions, 30 steps x 2 \(medians\): [1-9]\d* steps per CPU-second, [1-9]\d* steps per wall-clock second\n", done.stdout)
