@@ -103,15 +103,32 @@ class FullDisk(io.FileIO):
         return super().write(data)
 
 
-def overflow_the_actor(weights: dict, head: str = "fc_mean") -> None:
-    """A SAC actor's weights (named as in its state dict), made finite weights whose output is NaN: every
-    unit of fc2 at 2 after the ReLU, and `head`'s weights at 3e38 and -3e38 in turn, so that each of its
-    products is +-inf in float32 and their sum NaN, in any order of summation."""
+def overflow_the_actor(weights: dict) -> None:
+    """A SAC actor's weights (named as in its state dict), made finite weights whose mean and log-std are NaN
+    on every input: every unit of fc1 at 2 after the ReLU; fc2's weights at 3e38, so that each of its units
+    sums positive terms beyond float32, +inf in any order; each head's weights +1 and -1 in turn, so that
+    its terms are +inf and -inf, whose sum is NaN in any order, fused multiply-adds included. (Terms that
+    are finite and overflow only as they are summed would not do: a chain of fused multiply-adds keeps
+    the sign of the first one to overflow, which some CPUs' products do and others' do not.)"""
+    with torch.no_grad():
+        weights["fc1.weight"].zero_()
+        weights["fc1.bias"].fill_(2.0)
+        weights["fc2.weight"].fill_(3e38)
+        weights["fc2.bias"].zero_()
+        for head in ("fc_mean", "fc_logstd"):
+            w = weights[f"{head}.weight"]
+            w.copy_(torch.where(torch.arange(w.shape[1]) % 2 == 0, 1.0, -1.0).expand_as(w))
+    assert all(bool(torch.isfinite(w).all()) for w in weights.values())
+
+
+def overflow_the_mean(weights: dict) -> None:
+    """A SAC actor's weights made finite weights whose mean is +inf on every input and whose log-std stays
+    finite: every unit of fc2 at 2 after the ReLU, and the mean head's weights at 3e38, so that it sums
+    positive terms beyond float32, +inf in any order. (Its action, tanh of the mean, is finite.)"""
     with torch.no_grad():
         weights["fc2.weight"].zero_()
         weights["fc2.bias"].fill_(2.0)
-        w = weights[f"{head}.weight"]
-        w.copy_(torch.tensor([3e38, -3e38]).repeat(w.numel() // 2).view_as(w))
+        weights["fc_mean.weight"].fill_(3e38)
     assert all(bool(torch.isfinite(w).all()) for w in weights.values())
 
 

@@ -22,7 +22,7 @@ import pytest
 import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from conftest import CAR_TRAIN_FAST as FAST, ROOT, fill_the_disk_for, overflow_the_actor
+from conftest import CAR_TRAIN_FAST as FAST, ROOT, fill_the_disk_for, overflow_the_actor, overflow_the_mean
 from test_stopping import LOST_HEADER, on_a_terminal
 
 jetracer = pytest.importorskip("deploy.jetracer")
@@ -1084,9 +1084,25 @@ def record_the_cars_actions(monkeypatch) -> list:
     return acted
 
 
+def make_the_actor_overflow(actor: torch.nn.Module, output: str) -> None:
+    """`output` ("mean" or "log-std") of `actor` made non-finite on every input from now on, its other output
+    left as it was. The mean by finite weights (`overflow_the_mean`); the log-std by replacing it with NaN:
+    tanh bounds it, so finite weights make it NaN only where the CPU adds partial sums of both signs, which
+    a chain of fused multiply-adds never does."""
+    if output == "mean":
+        overflow_the_mean(dict(actor.named_parameters()))
+        return
+
+    def forward(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mean, log_std = real_forward(x)
+        return mean, torch.full_like(log_std, math.nan)
+
+    real_forward, actor.forward = actor.forward, forward  # this actor only: a copy made before keeps its own
+
+
 @pytest.mark.parametrize("learner", ["pause", "background"])
-@pytest.mark.parametrize("head", ["fc_mean", "fc_logstd"])
-def test_an_update_whose_actor_overflows_is_not_saved_and_the_car_never_acts_with_it(learner, head, tmp_path, monkeypatch):
+@pytest.mark.parametrize("output", ["mean", "log-std"])
+def test_an_update_whose_actor_overflows_is_not_saved_and_the_car_never_acts_with_it(learner, output, tmp_path, monkeypatch):
     """Finite weights pass the check of weights and moments; their output on the stored observations does not."""
     real_update, updates = jetracer.jirl.SoftActorCritic.update, []
 
@@ -1094,7 +1110,7 @@ def test_an_update_whose_actor_overflows_is_not_saved_and_the_car_never_acts_wit
         losses = real_update(self, batch, i)
         updates.append(i)
         if len(updates) == 4:  # the last update of the step-80 pause (two per pause from step 40): none learns from its output
-            overflow_the_actor(dict(self.actor.named_parameters()), head)
+            make_the_actor_overflow(self.actor, output)
         return losses
 
     monkeypatch.setattr(jetracer.jirl.SoftActorCritic, "update", update)
@@ -1130,17 +1146,19 @@ def test_the_pauses_overflow_check_runs_the_actor_on_the_latest_stored_observati
     assert [jetracer.overflow(overflowing_on(n), rb, rows=3) for n in (11, 12, 14)] == ["", *["the actor overflows on some of the 3 latest stored observations"] * 2]
     assert jetracer.overflow(overflowing_on(5), rb) == "the actor overflows on some of the 10 latest stored observations"  # all there are
     assert jetracer.overflow(overflowing_on(4), rb) == ""  # overwritten
+    log_std_nan = lambda obs: (torch.zeros(len(obs), 2), torch.where(obs == 14, math.nan, 0.0).expand(-1, 2))  # noqa: E731
+    assert jetracer.overflow(log_std_nan, rb, rows=1) == "the actor overflows on some of the 1 latest stored observations"  # the log-std alone
 
 
-@pytest.mark.parametrize("head", ["fc_mean", "fc_logstd"])
-def test_an_actor_that_overflows_on_a_new_observation_ends_the_training_before_its_output_acts_or_is_stored(head, tmp_path, monkeypatch):
+@pytest.mark.parametrize("output", ["mean", "log-std"])
+def test_an_actor_that_overflows_on_a_new_observation_ends_the_training_before_its_output_acts_or_is_stored(output, tmp_path, monkeypatch):
     """The pause's check sees the stored observations only; the loop checks each new one as the script does."""
     real_save = jetracer.save_training_state
 
     def save(path, sac, rb, counters, args, create=False):
         real_save(path, sac, rb, counters, args, create)
         if counters["step"] == 40:  # after the pause's checks and its save: as if only step 40's observation made it overflow
-            overflow_the_actor(dict(sac.actor.named_parameters()), head)
+            make_the_actor_overflow(sac.actor, output)
 
     monkeypatch.setattr(jetracer, "save_training_state", save)
     controllers, acted = record_closed_controllers(monkeypatch), record_the_cars_actions(monkeypatch)
@@ -1158,7 +1176,7 @@ def test_run_ends_on_a_policy_whose_action_is_not_finite_rather_than_stop_the_ca
     jetracer.main(["train", "--total-steps", "40", "--checkpoint", str(state), "--log-dir", str(tmp_path / "logs"), *FAST])
     policy = jetracer.policy_path(str(state))
     checkpoint = torch.load(policy, weights_only=True)
-    overflow_the_actor(checkpoint["actor"], "fc_mean")
+    overflow_the_actor(checkpoint["actor"])
     torch.save(checkpoint, policy)  # its weights are finite: it loads
     controllers, acted = record_closed_controllers(monkeypatch), record_the_cars_actions(monkeypatch)
     capsys.readouterr()
