@@ -98,10 +98,16 @@ def load_policy(path: Path = WEIGHTS) -> tuple[MeanPolicy, np.ndarray, np.ndarra
 
 
 class Walker2DBaseline:
-    """baseline(obs) -> the trained policy's deterministic action, in the env's units."""
+    """baseline(obs) -> the trained policy's deterministic action, in the env's units.
+
+    The policy runs in float64 and its action is rounded to float32, so that every CPU gives the same
+    action: float32 products differ in their last bits between CPUs (AVX2 or AVX-512 kernels), and the
+    walker's 1,000 steps grow such a difference into another episode, or a fall.
+    """
 
     def __init__(self, path: Path = WEIGHTS):
         self.policy, self.low, self.high, self.metadata = load_policy(path)
+        self.policy.double()
         self.obs_dim = self.policy.fc1.in_features
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
@@ -109,7 +115,7 @@ class Walker2DBaseline:
         if obs.shape != (self.obs_dim,):
             raise ValueError(f"the Walker2D baseline expects {self.obs_dim} observations, got shape {obs.shape}")
         with torch.inference_mode():
-            action = self.policy(torch.from_numpy(obs).unsqueeze(0))[0].numpy()
+            action = self.policy(torch.from_numpy(obs).double().unsqueeze(0))[0].numpy().astype(np.float32)
         return self.low + (action + 1.0) * 0.5 * (self.high - self.low)
 
 
