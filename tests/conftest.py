@@ -107,9 +107,9 @@ def overflow_the_actor(weights: dict) -> None:
     """A SAC actor's weights (named as in its state dict), made finite weights whose mean and log-std are NaN
     on every input: every unit of fc1 at 2 after the ReLU; fc2's weights at 3e38, so that each of its units
     sums positive terms beyond float32, +inf in any order; each head's weights +1 and -1 in turn, so that
-    its terms are +inf and -inf, whose sum is NaN in any order, fused multiply-adds included. (Terms that
-    are finite and overflow only as they are summed would not do: a chain of fused multiply-adds keeps
-    the sign of the first one to overflow, which some CPUs' products do and others' do not.)"""
+    its terms are +inf and -inf, whose sum is NaN in any order, fused multiply-adds included. (Finite
+    terms of both signs that overflow would not do: a chain of fused multiply-adds keeps the sign of the
+    first to overflow, and whether a CPU's kernels sum in such a chain differs from CPU to CPU.)"""
     with torch.no_grad():
         weights["fc1.weight"].zero_()
         weights["fc1.bias"].fill_(2.0)
