@@ -52,9 +52,10 @@ def test_baseline_walks():
 def test_every_cpu_gives_the_same_actions(tmp_path):
     """float32 products round differently with AVX-512, AVX2 and older kernels, and the walker's 1,000 steps
     grow that into another return (with MKL held to AVX2 on one CPU, a fall). The baseline runs in float64
-    and rounds its action to float32, so that every CPU acts alike: here one process holds MKL and oneDNN
-    to SSE4.2 kernels and the other leaves them to this CPU's best, and their actions over an episode's
-    first 300 steps agree to the bit."""
+    and rounds its action to float32, so that every CPU acts alike: here three processes leave MKL and
+    oneDNN to this CPU's best kernels, hold them to AVX2 ones and to SSE4.2 ones, and their actions over
+    an episode's first 300 steps agree to the bit. (Where a CPU's MKL picks the same kernels in all three,
+    the test cannot tell float32 from float64.)"""
     code = (
         "import sys\n"
         "import numpy as np\n"
@@ -67,14 +68,18 @@ def test_every_cpu_gives_the_same_actions(tmp_path):
         "    obs, *_ = env.step(actions[-1])\n"
         "np.save(sys.argv[1], np.array(actions))\n"
     )
-    sse42 = {"MKL_ENABLE_INSTRUCTIONS": "SSE4_2", "DNNL_MAX_CPU_ISA": "SSE41", "ONEDNN_MAX_CPU_ISA": "SSE41", "ATEN_CPU_CAPABILITY": "default"}
-    environments = {"best": {k: v for k, v in os.environ.items() if k not in sse42}, "sse42": {**os.environ, **sse42}}
-    for name, env in environments.items():
+    held = {
+        "avx2": {"MKL_ENABLE_INSTRUCTIONS": "AVX2", "DNNL_MAX_CPU_ISA": "AVX2", "ONEDNN_MAX_CPU_ISA": "AVX2", "ATEN_CPU_CAPABILITY": "avx2"},
+        "sse42": {"MKL_ENABLE_INSTRUCTIONS": "SSE4_2", "DNNL_MAX_CPU_ISA": "SSE41", "ONEDNN_MAX_CPU_ISA": "SSE41", "ATEN_CPU_CAPABILITY": "default"},
+    }
+    best = {k: v for k, v in os.environ.items() if k not in held["sse42"]}
+    for name, env in {"best": best, **{name: {**best, **settings} for name, settings in held.items()}}.items():
         done = subprocess.run([sys.executable, "-c", code, str(tmp_path / name)], env={**env, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True, timeout=120)
         assert done.returncode == 0, done.stderr
-    best, held = np.load(tmp_path / "best.npy"), np.load(tmp_path / "sse42.npy")
-    assert best.shape == (300, 6) and best.dtype == np.float32
-    np.testing.assert_array_equal(best, held)
+    actions = np.load(tmp_path / "best.npy")
+    assert actions.shape == (300, 6) and actions.dtype == np.float32
+    for name in held:
+        np.testing.assert_array_equal(np.load(tmp_path / f"{name}.npy"), actions, err_msg=name)
 
 
 def test_bad_files_give_clear_errors_and_lose_nothing(tmp_path):
