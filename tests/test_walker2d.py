@@ -74,7 +74,7 @@ def test_every_cpu_gives_the_same_actions(tmp_path):
     }
     best = {k: v for k, v in os.environ.items() if k not in held["sse42"]}
     for name, env in {"best": best, **{name: {**best, **settings} for name, settings in held.items()}}.items():
-        done = subprocess.run([sys.executable, "-c", code, str(tmp_path / name)], env={**env, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True, timeout=120)
+        done = subprocess.run([sys.executable, "-c", code, str(tmp_path / name)], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
         assert done.returncode == 0, done.stderr
     actions = np.load(tmp_path / "best.npy")
     assert actions.shape == (300, 6) and actions.dtype == np.float32
