@@ -121,13 +121,14 @@ def measure(seed: int, jirl: dict[str, Series], sac: dict[str, Series], episodes
     )
 
 
-def runs_by_seed(workdir: Path) -> dict[int, Path]:
-    """The run directories under workdir/runs, by seed (the newest run of a seed if there are several)."""
+def runs_by_seed(workdir: Path, tool: str = "paper_window") -> dict[int, Path]:
+    """The run directories under workdir/runs, by seed (the newest run of a seed if there are several);
+    `tool` names the command in the error for a workdir without runs."""
     runs: dict[int, Path] = {}
     for run in sorted((workdir / "runs").glob("*__*__*__*"), key=lambda p: p.stat().st_mtime):
         runs[int(run.name.split("__")[2])] = run
     if not runs:
-        raise SystemExit(f"paper_window: error: no runs under {workdir / 'runs'}")
+        raise SystemExit(f"{tool}: error: no runs under {workdir / 'runs'}")
     return runs
 
 
