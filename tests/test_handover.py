@@ -17,7 +17,7 @@ C = [(100, 10.0), (200, 0.5), (300, 0.0), (400, 1e-6), (500, 2e-6), (600, 0.0), 
 CONTROL = [(100, 0.1), (200, 0.999), (300, 0.9), (400, 1.0), (500, 0.95), (600, 1.0), (700, 0.75)]
 
 
-def test_one_run_s_handover():
+def test_the_handover_of_one_run():
     assert handover.handover(C, CONTROL) == {"c_zero": 300, "full_control": 400, "c_back": 2 / 5, "c_end": 0.0, "control_end": 0.75}
 
 
@@ -47,7 +47,7 @@ def test_the_command_reads_the_newest_run_of_each_seed_across_workdirs(tmp_path,
     assert len(out.splitlines()) == 5  # header, rule, two seeds, median
 
 
-def test_a_median_over_a_run_that_never_got_there_is_not_given(capsys):
+def test_a_median_over_a_run_that_never_got_there_is_not_given():
     never = handover.handover([(100, 10.0)], [(100, 0.2)])
     table = handover.report({1: handover.handover(C, CONTROL), 2: never})
     assert "| median | – | – | – | 5 | 47.5 % |" in table
