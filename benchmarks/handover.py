@@ -1,7 +1,8 @@
 """When JIRL handed control to its agent, per seed, read from the TensorBoard logs of its runs.
 
-Reads the JIRL runs under one or more `--workdir`s of benchmarks/learning.py (the newest run of each
-seed) and prints one row per seed and the medians, from what the script logs every --log-every steps:
+Reads the JIRL runs under the workdirs given as arguments (each the `--workdir` of a
+benchmarks/learning.py run; the newest run of each seed) and prints one row per seed and the medians,
+from what the script logs every --log-every steps:
 
 - C = 0 from: the first logged step where the gate's C (`gate/c`) is 0: the guidance is over;
 - 100 % from: the first logged step where `charts/rl_control_fraction` is 1, the agent having acted
