@@ -56,6 +56,10 @@ def check(argv: list[str]) -> str | None:
             run_as = parsed.args[0]
             extra = rest[rest.index("--") + 1 :]
             return check([run_as.script, "--env-id", run_as.env_id, "--total-timesteps", str(run_as.total_timesteps), *extra])
+        if Path(name).name == "sps_jirl_vs_sac.py" and "--" in rest:  # after `--`: options for both scripts, JIRL's own among them
+            run_as = parsed.args[0]
+            extra = rest[rest.index("--") + 1 :]
+            return check(["jirl_sac_continuous.py", "--env-id", run_as.env_id, "--total-timesteps", str(run_as.steps), "--learning-starts", str(run_as.learning_starts), *extra])
         return None
     except SystemExit as end:  # --help exits 0; a refused argument 2
         return None if end.code in (0, None) else said.getvalue().strip() or f"exit status {end.code}"

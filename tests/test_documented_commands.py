@@ -88,22 +88,27 @@ def test_every_documented_command_is_accepted_by_its_program():
 
 def test_a_command_its_program_would_refuse_is_refused_with_its_own_words():
     """The check is no weaker than the programs: a wrong option, a value out of range, a bad value after
-    learning.py's `--` (for the script it runs), and a module that does not parse are each refused."""
+    learning.py's or sps_jirl_vs_sac.py's `--` (for the scripts they run), an option the latter sets
+    itself, and a module that does not parse are each refused."""
     bad = [
         ["sac_continuous.py", "--no-such-option", "1"],
         ["jirl_sac_continuous.py", "--gate-c", "-1"],
         ["benchmarks/learning.py", "--script", "jirl_sac_continuous.py", "--", "--penalty-sigma2", "0"],
         ["-m", "deploy.jetracer", "train", "--total-steps", "many"],
         ["benchmarks/learning.py", "--seedz", "1"],
+        ["benchmarks/sps_jirl_vs_sac.py", "--env-id", "JetRacerTrack-v0", "--", "--guidance-schedule", "sometimes"],
+        ["benchmarks/sps_jirl_vs_sac.py", "--", "--seed", "2"],
         ["-m", "envs.track"],
     ]
-    good = [["sac_continuous.py", "--help"], ["benchmarks/learning.py", "--script", "jirl_sac_continuous.py", "--", "--penalty-sigma2", "0.5"]]
+    good = [["sac_continuous.py", "--help"], ["benchmarks/learning.py", "--script", "jirl_sac_continuous.py", "--", "--penalty-sigma2", "0.5"],
+            ["benchmarks/sps_jirl_vs_sac.py", "--env-id", "JetRacerTrack-v0", "--", "--regret-estimator", "unpaired", "--guidance-fade-steps", "5000"]]  # fmt: skip
     said = parse(bad + good)
     assert all(said[: len(bad)]), said
     assert "--no-such-option" in said[0] and "--gate-c" in said[1] and "--penalty-sigma2" in said[2] and "--total-steps" in said[3]
     assert "unrecognized arguments: --seedz" in said[4]
-    assert said[5] == "the program ended without parsing its arguments"
-    assert said[len(bad) :] == [None, None]
+    assert "--guidance-schedule" in said[5] and "this tool sets --env-id, --seed" in said[6]
+    assert said[7] == "the program ended without parsing its arguments"
+    assert said[len(bad) :] == [None, None, None]
 
 
 def readme_table(section: str, header: str) -> list[list[str]]:

@@ -218,6 +218,7 @@ def test_track_laps_refuses_zero_episodes(monkeypatch, capsys):
     "tool, option, message",
     [
         ("sps_jirl_vs_sac", ["--learning-starts", "-1"], "--learning-starts must be at least 0"),
+        ("sps_jirl_vs_sac", ["--", "--buffer-size", "100", "--seed=3"], "--seed after `--`: this tool sets --env-id, --seed"),
         ("sps_vs_sb3", ["--widths", "64", "0"], "--widths must be at least 1"),
         ("sps_trust_region", ["--steps", "0"], "--steps must be at least 1"),
         ("sps_trust_region", ["--algos", "ppo", "sac"], "argument --algos: invalid choice: 'sac'"),  # was a KeyError after the first runs
@@ -364,6 +365,46 @@ def test_the_sac_speed_benchmarks_give_sb3_the_settings_ours_train_with(tool, mo
     else:  # SB3's defaults for these
         assert (args.tau, args.gamma) == (0.005, 0.99)
     assert made == expected
+
+
+def test_the_jirl_speed_benchmark_gives_both_scripts_the_same_sac_options_and_jirl_alone_its_own(monkeypatch, tmp_path, capsys):
+    """sps_jirl_vs_sac.py compares JIRL with SAC "at the same SAC settings" on any env: an option after
+    `--` that SAC's Args has goes to both scripts, one only JIRL's has goes to JIRL alone (SAC's parser
+    would refuse it), and the options the tool sets itself are refused after `--`."""
+    import sps_jirl_vs_sac
+    import tyro
+
+    ran = []
+
+    def compare(command, steps, repeats, workdir, names):
+        ran.extend(command(name, 7) for name in names)
+        return "1.0 | 1.0 | 1.00 (range 1.00-1.00) | 1 |"
+
+    monkeypatch.setattr(sps_jirl_vs_sac, "compare", compare)
+    given = ["--regret-estimator", "unpaired", "--guidance-schedule", "geometric", "--guidance-fade-steps=5000",
+             "--no-use-switch-penalty", "--switch-penalty", "-2.5", "--buffer-size", "20000"]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", ["sps_jirl_vs_sac.py", "--env-id", "JetRacerTrack-v0", "--widths", "32", "--steps", "600",
+                                      "--learning-starts", "100", "--workdir", str(tmp_path), "--", *given])  # fmt: skip
+    sps_jirl_vs_sac.main()
+    assert "JetRacerTrack-v0, 600 steps" in capsys.readouterr().out
+    jirl_cmd, sac_cmd = ran
+    assert jirl_cmd[1].endswith("jirl_sac_continuous.py") and sac_cmd[1].endswith("sac_continuous.py")
+    jirl = tyro.cli(load_script("jirl_sac_continuous").Args, args=jirl_cmd[2:])
+    sac = tyro.cli(load_script("sac_continuous").Args, args=sac_cmd[2:])
+    for name in ("env_id", "seed", "total_timesteps", "learning_starts", "hidden_size", "torch_threads", "regret_estimator", "buffer_size"):
+        assert getattr(jirl, name) == getattr(sac, name), name
+    assert (sac.env_id, sac.seed, sac.total_timesteps, sac.learning_starts, sac.hidden_size, sac.torch_threads) == ("JetRacerTrack-v0", 7, 600, 100, 32, 1)
+    assert (sac.regret_estimator, sac.buffer_size) == ("unpaired", 20000)
+    assert (jirl.guidance_schedule, jirl.guidance_fade_steps, jirl.use_switch_penalty, jirl.switch_penalty) == ("geometric", 5000, False, -2.5)
+    for option in (["--guidance-schedule", "geometric"], ["--guidance-fade-steps=5000"], ["--no-use-switch-penalty"], ["--switch-penalty", "-2.5"]):
+        with pytest.raises(SystemExit):
+            tyro.cli(load_script("sac_continuous").Args, args=option)
+    capsys.readouterr()
+    ran.clear()
+    monkeypatch.setattr(sys, "argv", ["sps_jirl_vs_sac.py", "--widths", "64", "--workdir", str(tmp_path)])
+    sps_jirl_vs_sac.main()
+    assert [cmd[2:] for cmd in ran] == [["--env-id", "Pendulum-v1", "--seed", "7", "--total-timesteps", "4000", "--learning-starts", "1000",
+                                         "--hidden-size", "64", "--torch-threads", "1"]] * 2  # fmt: skip
 
 
 def test_profile_sac_profiles_the_scripts_default_update_after_its_warm_up(monkeypatch, capsys):
