@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 from side_by_side import compare, load_module, stop_children_on_sigterm
@@ -43,7 +44,7 @@ def split_options(extra: list[str], jirl_only: set[str]) -> tuple[list[str], lis
     return both, jirl
 
 
-def command(script: str, width: int, steps: int, learning_starts: int, seed: int, env_id: str = "Pendulum-v1", options: list[str] = ()) -> list[str]:
+def command(script: str, width: int, steps: int, learning_starts: int, seed: int, env_id: str = "Pendulum-v1", options: Sequence[str] = ()) -> list[str]:
     return [sys.executable, str(ROOT / f"{script}.py"), "--env-id", env_id, "--seed", str(seed),
             "--total-timesteps", str(steps), "--learning-starts", str(learning_starts), "--hidden-size", str(width),
             "--torch-threads", "1", *options]  # fmt: skip
@@ -51,8 +52,9 @@ def command(script: str, width: int, steps: int, learning_starts: int, seed: int
 
 def main() -> None:
     argv = sys.argv[1:]
-    extra = argv[argv.index("--") + 1 :] if "--" in argv else []
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    cut = argv.index("--") if "--" in argv else len(argv)
+    extra = argv[cut + 1 :]
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog="Options after `--` go to both scripts, those only JIRL has to JIRL alone.")
     parser.add_argument("--env-id", default="Pendulum-v1")
     parser.add_argument("--widths", type=int, nargs="+", default=[64, 256])
     parser.add_argument("--steps", type=int, default=4000)
@@ -61,7 +63,7 @@ def main() -> None:
     parser.add_argument("--workdir", type=Path, default=ROOT / "benchmarks" / "results" / "sps_jirl_vs_sac")
     if set_here := sorted({token.split("=", 1)[0] for token in extra} & set(SET_HERE)):
         parser.error(f"{', '.join(set_here)} after `--`: this tool sets {', '.join(SET_HERE)} itself (see --help)")
-    args = parser.parse_args(argv[: argv.index("--")] if "--" in argv else argv)
+    args = parser.parse_args(argv[:cut])
     minimums = {"--widths": (min(args.widths), 1), "--steps": (args.steps, 1), "--repeats": (args.repeats, 1), "--learning-starts": (args.learning_starts, 0)}
     if too_small := [f"{flag} must be at least {low}" for flag, (value, low) in minimums.items() if not value >= low]:
         parser.error("; ".join(too_small))

@@ -370,7 +370,7 @@ def test_the_sac_speed_benchmarks_give_sb3_the_settings_ours_train_with(tool, mo
 def test_the_jirl_speed_benchmark_gives_both_scripts_the_same_sac_options_and_jirl_alone_its_own(monkeypatch, tmp_path, capsys):
     """sps_jirl_vs_sac.py compares JIRL with SAC "at the same SAC settings" on any env: an option after
     `--` that SAC's Args has goes to both scripts, one only JIRL's has goes to JIRL alone (SAC's parser
-    would refuse it), and the options the tool sets itself are refused after `--`."""
+    would refuse it), and without `--` the command is Pendulum's as before."""
     import sps_jirl_vs_sac
     import tyro
 
