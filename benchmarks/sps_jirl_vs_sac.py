@@ -21,15 +21,13 @@ from pathlib import Path
 from side_by_side import compare, load_module, stop_children_on_sigterm
 
 ROOT = Path(__file__).resolve().parent.parent
-SET_HERE = ("--env-id", "--seed", "--total-timesteps", "--learning-starts", "--hidden-size", "--torch-threads")
 
 
 def flags(script: str) -> set[str]:
     """The options of a script's `Args` as tyro spells them: field x_y is --x-y, and a bool also --no-x-y."""
     module = load_module(str(ROOT / f"{script}.py"), f"{script}_options")
-    fields = dataclasses.fields(module.Args)
-    names = {f"--{field.name.replace('_', '-')}" for field in fields}
-    return names | {f"--no-{field.name.replace('_', '-')}" for field in fields if field.type in (bool, "bool")}
+    is_bool = {field.name.replace("_", "-"): field.type in (bool, "bool") for field in dataclasses.fields(module.Args)}
+    return {f"--{name}" for name in is_bool} | {f"--no-{name}" for name, boolean in is_bool.items() if boolean}
 
 
 def split_options(extra: list[str], jirl_only: set[str]) -> tuple[list[str], list[str]]:
@@ -48,6 +46,9 @@ def command(script: str, width: int, steps: int, learning_starts: int, seed: int
     return [sys.executable, str(ROOT / f"{script}.py"), "--env-id", env_id, "--seed", str(seed),
             "--total-timesteps", str(steps), "--learning-starts", str(learning_starts), "--hidden-size", str(width),
             "--torch-threads", "1", *options]  # fmt: skip
+
+
+SET_HERE = tuple(token for token in command("sac_continuous", 1, 1, 0, 1) if token.startswith("--"))  # refused after `--`
 
 
 def main() -> None:

@@ -36,6 +36,15 @@ tyro.cli = stop_after(tyro.cli)
 tyro.extras.subcommand_cli_from_dict = stop_after(tyro.extras.subcommand_cli_from_dict)
 
 
+# Tools whose arguments after `--` go to a script: the script's command line they start, from what they parsed
+AFTER_DASHES = {
+    "learning.py": lambda run_as: [run_as.script, "--env-id", run_as.env_id, "--total-timesteps", str(run_as.total_timesteps)],
+    # to both scripts, JIRL's own options among them: JIRL's parser takes them all
+    "sps_jirl_vs_sac.py": lambda run_as: ["jirl_sac_continuous.py", "--env-id", run_as.env_id, "--total-timesteps", str(run_as.steps),
+                                          "--learning-starts", str(run_as.learning_starts)],  # fmt: skip
+}
+
+
 def check(argv: list[str]) -> str | None:
     """None when the program of `python *argv` accepts its arguments, else its error output."""
     if argv[0] == "-m":
@@ -52,14 +61,8 @@ def check(argv: list[str]) -> str | None:
         with contextlib.redirect_stderr(said), contextlib.redirect_stdout(io.StringIO()):
             run()
     except Parsed as parsed:
-        if Path(name).name == "learning.py" and "--" in rest:  # its arguments after `--` go to --script
-            run_as = parsed.args[0]
-            extra = rest[rest.index("--") + 1 :]
-            return check([run_as.script, "--env-id", run_as.env_id, "--total-timesteps", str(run_as.total_timesteps), *extra])
-        if Path(name).name == "sps_jirl_vs_sac.py" and "--" in rest:  # after `--`: options for both scripts, JIRL's own among them
-            run_as = parsed.args[0]
-            extra = rest[rest.index("--") + 1 :]
-            return check(["jirl_sac_continuous.py", "--env-id", run_as.env_id, "--total-timesteps", str(run_as.steps), "--learning-starts", str(run_as.learning_starts), *extra])
+        if Path(name).name in AFTER_DASHES and "--" in rest:
+            return check([*AFTER_DASHES[Path(name).name](parsed.args[0]), *rest[rest.index("--") + 1 :]])
         return None
     except SystemExit as end:  # --help exits 0; a refused argument 2
         return None if end.code in (0, None) else said.getvalue().strip() or f"exit status {end.code}"
