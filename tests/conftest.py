@@ -159,7 +159,7 @@ def fill_the_disk_for(monkeypatch, name: str) -> None:
 def writers_closed(monkeypatch):
     """A run that ends at set-up leaves its TensorBoard writer open, which is harmless in a process of its
     own; in-process, its thread would write to runs/ relative to a directory the test has left. Closed
-    here, before monkeypatch changes back."""
+    here, before monkeypatch changes back. Yields the writers made, for a test that reads their logs first."""
     opened = []
 
     class Recorded(tensorboard.SummaryWriter):
@@ -168,7 +168,7 @@ def writers_closed(monkeypatch):
             opened.append(self)
 
     monkeypatch.setattr(tensorboard, "SummaryWriter", Recorded)
-    yield
+    yield opened
     assert opened, "the run made no writer through the patched class"
     for writer in opened:
         writer.close()

@@ -380,6 +380,9 @@ def test_run_drives_a_checkpoint_trained_by_the_jirl_script(tmp_path):
     broken.write_bytes(b"garbage")
     with pytest.raises(SystemExit, match="not a readable checkpoint"):
         jetracer.run(jetracer.Run(checkpoint=str(broken), steps=1, log_dir=str(tmp_path)))
+    with pytest.raises(SystemExit) as raised:
+        jetracer.run(jetracer.Run(steps=1, log_dir=str(tmp_path)))
+    assert str(raised.value) == "run: error: --checkpoint is required"
 
 
 def test_the_modules_annotate_their_signatures():
@@ -1621,10 +1624,14 @@ def test_a_resume_that_finds_no_training_state_leaves_no_lock_file_and_a_state_k
     jetracer.save_training_state(str(state), sac, rb, dict(jetracer.TRAIN_COUNTERS, step=3), jetracer.Train(jirl=hp, checkpoint=str(state)))
     wider = jetracer.car_jirl_defaults()
     wider.hidden_size = 16  # a real state, read by a run with other settings
-    for path, settings, message in ((notes, hp, "is not a readable training state"), (state, wider, "holds an agent of 8 units")):
+    other = tmp_path / "other.pt"
+    torch.save({"format": "jirl-gaussian-checkpoint-v1"}, other)  # a readable file of another kind: PPO+IL's policy
+    for path, settings, message in ((notes, hp, "is not a readable training state"), (state, wider, "holds an agent of 8 units"),
+                                    (other, hp, f"^train: error: {re.escape(str(other))} is not a jirl-car-training-v2 file$")):  # fmt: skip
         with pytest.raises(SystemExit, match=message):
             jetracer.train(jetracer.Train(jirl=settings, checkpoint=str(path), resume=True, total_steps=50, log_dir=str(tmp_path / "logs")))
     assert notes.read_text() == "not a training state" and not Path(jetracer.lock_path(str(notes))).exists()  # before: notes.txt.lock stayed
+    assert torch.load(other, weights_only=True) == {"format": "jirl-gaussian-checkpoint-v1"} and not Path(jetracer.lock_path(str(other))).exists()
     assert Path(jetracer.lock_path(str(state))).exists()  # beside a state the lock file stays, as after any run on it
     assert torch.load(state, weights_only=True)["counters"]["step"] == 3 and not (tmp_path / "logs").exists()
 

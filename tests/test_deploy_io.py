@@ -85,6 +85,30 @@ def test_a_live_camera_has_its_first_frame_at_open_and_reads_on_after_a_missed_f
     assert not camera._thread.is_alive()
 
 
+def test_the_csi_camera_opens_the_jetsons_gstreamer_pipeline_at_the_policys_frame_size(monkeypatch):
+    with pytest.raises(ValueError, match=r"^cannot open camera 'nvarguscamerasrc ! "):  # off the car: one line naming the pipeline
+        io.open_camera("csi")
+    opened = []
+
+    class Recorded(ScriptedCapture):
+        def __init__(self, *args):
+            super().__init__()
+            opened.append(args)
+
+    monkeypatch.setattr(cv2, "VideoCapture", Recorded)
+    camera = io.open_camera("csi")
+    try:
+        ((pipeline, api),) = opened
+        assert api == cv2.CAP_GSTREAMER
+        elements = [element.strip() for element in pipeline.split("!")]
+        assert elements[0] == "nvarguscamerasrc" and elements[-1] == "appsink drop=true max-buffers=1"  # the newest frame, none queued
+        assert f"video/x-raw, width={FRAME_SHAPE[1]}, height={FRAME_SHAPE[0]}, format=BGRx" in elements  # scaled by nvvidconv, on the GPU
+        assert elements[-2] == "video/x-raw, format=BGR" and camera.read()[0].shape == FRAME_SHAPE
+    finally:
+        camera.capture.reads.put(None)  # lets the reader's read return, so that close() can join it
+        camera.close()
+
+
 def test_the_simulated_camera_needs_the_simulated_car():
     with pytest.raises(ValueError, match="camera 'sim' needs the simulator: use it with --port mockjetracer://"):
         io.open_camera("sim")

@@ -42,6 +42,9 @@ def test_every_message_round_trips_and_frames_have_one_delimiter():
     assert p.crc16(b"123456789") == 0x29B1  # CRC-16/CCITT-FALSE check value
     with pytest.raises(ValueError, match="bad fields for DRIVE"):
         p.encode(p.Message(p.DRIVE, 0, (40000, 0)))
+    assert 0x7F not in p.PAYLOADS
+    with pytest.raises(ValueError, match=r"^unknown message type 0x7f$"):  # a frame no controller could parse is never sent
+        p.encode(p.Message(0x7F, 0, ()))
 
 
 def test_the_documented_example_frame():
@@ -345,6 +348,19 @@ def test_link_estop_is_immediate_and_close_sends_stop_then_estop(mock_link):
     assert mock_link.arm()
     mock_link.close()
     assert controller.log[-1][1] == "e-stop" and not controller.armed
+
+
+def test_a_link_used_in_a_with_block_is_started_and_closed_with_an_estop_even_when_the_block_raises():
+    register_url_scheme()
+    with pytest.raises(KeyboardInterrupt):  # Ctrl-C mid-drive
+        with HostLink("mockjetracer://", send_hz=100, command_timeout=30.0) as link:
+            controller = link._port.controller
+            assert link.arm()
+            link.drive(0.0, 0.5)
+            assert wait_until(lambda: controller.throttle == 0.5)
+            raise KeyboardInterrupt
+    assert controller.log[-1][1] == "e-stop" and controller.estop_latched and not controller.armed and controller.throttle == 0.0
+    assert link._port is None and not any(thread.is_alive() for thread in link._threads)
 
 
 def test_a_refused_drive_tells_the_link_that_the_controller_restarted(mock_link):

@@ -519,18 +519,20 @@ def test_a_checkpoint_the_disk_cannot_hold_raises_its_os_error_and_leaves_no_fil
     assert torch.equal(torch.load(path, weights_only=True)["weights"], torch.ones(3))
 
 
-@pytest.mark.parametrize("script", list(SHORT_RUNS))
-def test_a_model_the_disk_cannot_hold_is_a_one_line_error(tmp_path, monkeypatch, script):
+@pytest.mark.parametrize("script, model", [*((script, ".cleanrl_model") for script in SHORT_RUNS),
+                                           ("ppo_il", "_cloned.cleanrl_model"), ("trpo_il", "_cloned.cleanrl_model")])  # fmt: skip
+def test_a_model_the_disk_cannot_hold_is_a_one_line_error(tmp_path, monkeypatch, script, model):
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(sys, "argv", [f"{script}.py", *SHORT_RUNS[script], "--baseline-eval-episodes", "1", "--save-model"])
-    fill_the_disk_for(monkeypatch, r".*\.cleanrl_model")
+    fill_the_disk_for(monkeypatch, re.escape(f"{script}{model}"))  # PPO+IL and TRPO+IL save the cloned policy first, then the trained one
     with pytest.raises(SystemExit) as raised:
         runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
     (run_dir,) = (tmp_path / "runs").iterdir()
-    model = "_cloned.cleanrl_model" if script in ("ppo_il", "trpo_il") else ".cleanrl_model"  # their first save
     expected = f"{script}: error: cannot save the model to runs/{run_dir.name}/{script}{model}: No space left on device"
     assert str(raised.value.code) == expected
-    assert not list(run_dir.glob("*.cleanrl_model"))
+    assert not (run_dir / f"{script}{model}").exists()
+    cloned_kept = script.endswith("_il") and model == ".cleanrl_model"  # saved before the disk filled
+    assert [path.name for path in run_dir.glob("*.cleanrl_model")] == ([f"{script}_cloned.cleanrl_model"] if cloned_kept else [])
 
 
 def test_the_readmes_saved_policy_snippet_runs(tmp_path, sac):

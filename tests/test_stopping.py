@@ -733,14 +733,21 @@ def test_a_baseline_failing_mid_training_keeps_the_model(script, where, raises, 
     assert ("Traceback (most recent call last)" in err) == raises, err  # the user's own error is shown where it arose
 
 
-def test_a_baseline_failing_in_its_first_paired_episode_is_a_one_line_error(sac, tmp_path, monkeypatch, writers_closed):
+@pytest.mark.parametrize("where, call", [("its measurement", 100), ("the first paired episode", 300)])  # of 200 calls each
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_baseline_failing_before_training_is_a_one_line_error(script, where, call, tmp_path, monkeypatch, writers_closed):
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(BaselineFailingAtCall, "limit", 300)  # after the 200 calls measuring it
-    args = [*SHORT_RUNS["sac_continuous"], "--baseline", f"{__name__}:BaselineFailingAtCall", "--regret-estimator", "paired", "--baseline-eval-episodes", "1"]
-    monkeypatch.setattr(sys, "argv", ["sac_continuous.py", *args])
+    monkeypatch.setattr(BaselineFailingAtCall, "limit", call + (400 if script.endswith("_il") else 0))  # after PPO+IL's and TRPO+IL's imitation data
+    args = [*SHORT_RUNS[script], "--baseline", f"{__name__}:BaselineFailingAtCall", "--regret-estimator", "paired", "--baseline-eval-episodes", "1"]
+    monkeypatch.setattr(sys, "argv", [f"{script}.py", *args])
     with pytest.raises(SystemExit) as ended:
-        runpy.run_path(str(ROOT / "sac_continuous.py"), run_name="__main__")
-    assert ended.value.code == "sac_continuous: error: the baseline returned nan; expected 1 finite number(s) in env units"
+        runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
+    assert ended.value.code == f"{script}: error: {FAILURE[False]}"
+    (writer,) = writers_closed
+    writer.close()  # as the process's exit would
+    events = EventAccumulator(writer.log_dir)
+    events.Reload()
+    assert ("charts/baseline_return" in events.Tags()["scalars"]) == (where == "the first paired episode")
 
 
 @pytest.mark.parametrize("script", ["ppo_il", "jirl_sac_continuous"])

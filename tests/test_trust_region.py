@@ -465,11 +465,16 @@ def test_one_step_episodes_need_two_imitation_steps(name, tmp_path):
     assert out.stdout.count("SPS:") == 1  # 100 steps, less than a rollout, still run one whole rollout of 256
 
 
+@pytest.mark.parametrize(
+    "env_id, message",
+    [("NoSuchEnv-v0", "unknown env id 'NoSuchEnv-v0'"),
+     ("MountainCarContinuous-v0", "{method} imitates a baseline and MountainCarContinuous-v0 has none; pass --baseline module:function")],
+)  # fmt: skip
 @pytest.mark.parametrize("name", ["ppo_il", "trpo_il"])
-def test_unknown_env_is_a_one_line_error(name, tmp_path):
-    out = run_script(ROOT / f"{name}.py", ["--env-id", "NoSuchEnv-v0"], tmp_path)
-    assert out.returncode != 0 and "unknown env id 'NoSuchEnv-v0'" in out.stderr
-    assert len(out.stderr.strip().splitlines()) == 1
+def test_an_unknown_env_or_one_without_a_baseline_is_a_one_line_error(name, env_id, message, tmp_path):
+    out = run_script(ROOT / f"{name}.py", ["--env-id", env_id], tmp_path)
+    assert out.returncode != 0 and message.format(method={"ppo_il": "PPO+IL", "trpo_il": "TRPO+IL"}[name]) in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1, out.stderr
     assert not (tmp_path / "runs").exists(), "nothing is written before the input is validated"
 
 

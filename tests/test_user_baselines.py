@@ -15,6 +15,11 @@ from conftest import ROOT, load_script
 from test_sac_script import run_script, scalars
 
 SCRIPTS = ["sac_continuous", "jirl_sac_continuous", "ppo_il", "trpo_il"]
+# a few hundred steps each: two whole 200-step training episodes, with updates (SAC's and JIRL's from step 300)
+BUDGETS = {"sac_continuous": ["--total-timesteps", "450", "--learning-starts", "300", "--batch-size", "16"],
+           "jirl_sac_continuous": ["--total-timesteps", "450", "--learning-starts", "300", "--batch-size", "16"],
+           "ppo_il": ["--num-steps", "256", "--total-timesteps", "512", "--il-steps", "400", "--il-max-epochs", "5"],
+           "trpo_il": ["--num-steps", "256", "--total-timesteps", "512", "--il-steps", "400", "--il-max-epochs", "5"]}  # fmt: skip
 USER_BASELINES = """
 import numpy as np
 
@@ -208,11 +213,7 @@ def test_a_stateful_baseline_is_reset_before_every_episode_it_acts_in_and_at_no_
     (tmp_path / "stateful_baseline.py").write_text(STATEFUL_BASELINE)
     log = tmp_path / "calls.txt"
     env = dict(os.environ, PYTHONPATH=f"{tmp_path}{os.pathsep}{ROOT}", BASELINE_LOG=str(log))
-    if script in ("ppo_il", "trpo_il"):
-        budget = ["--num-steps", "256", "--total-timesteps", "512", "--il-steps", "400", "--il-max-epochs", "5"]
-    else:
-        budget = ["--total-timesteps", "450", "--learning-starts", "300", "--batch-size", "16"]
-    args = ["--baseline", "stateful_baseline:Stateful", "--hidden-size", "16", "--baseline-eval-episodes", "2", *budget]
+    args = ["--baseline", "stateful_baseline:Stateful", "--hidden-size", "16", "--baseline-eval-episodes", "2", *BUDGETS[script]]
     out = run_script(ROOT / f"{script}.py", args, tmp_path, env)
     assert out.returncode == 0, out.stderr
     calls = log.read_text()
@@ -232,11 +233,7 @@ def test_the_baseline_is_measured_on_the_evaluation_seeds_and_the_unpaired_regre
     offset = load_script(script).EVAL_SEED_OFFSET
     assert offset == 1_000_000
     traces = [rollout(make_env("Pendulum-v1"), BASELINES["Pendulum-v1"], 1 + offset + i) for i in range(3)]
-    if script in ("ppo_il", "trpo_il"):
-        budget = ["--num-steps", "256", "--total-timesteps", "512", "--il-steps", "400", "--il-max-epochs", "5"]
-    else:
-        budget = ["--total-timesteps", "450", "--learning-starts", "300", "--batch-size", "16"]
-    args = ["--regret-estimator", "unpaired", "--baseline-eval-episodes", "3", "--hidden-size", "16", *budget]
+    args = ["--regret-estimator", "unpaired", "--baseline-eval-episodes", "3", "--hidden-size", "16", *BUDGETS[script]]
     out = run_script(ROOT / f"{script}.py", args, tmp_path)
     assert out.returncode == 0, out.stderr
     (run_dir,) = (tmp_path / "runs").iterdir()
@@ -304,6 +301,115 @@ def test_jirl_logs_the_return_of_the_baseline_it_hands_control_to(tmp_path):
     # the paired regret is against that baseline: max(0, -20 - R) an episode (against -500, the agent's worse episodes were free)
     np.testing.assert_allclose(logged["charts/baseline_regret"], np.cumsum(np.maximum(0.0, -20.0 - returns)), rtol=1e-5)
     assert logged["charts/baseline_regret"][-1] > 1.0  # the agent acted and did worse than the baseline
+
+
+SEEDED_ONCE_ENV = """
+import gymnasium as gym
+from gymnasium.envs.classic_control.pendulum import PendulumEnv
+
+
+class SeededOnce(PendulumEnv):
+    '''Pendulum seeded once, when made, as a simulator configured by a file is: reset ignores its seed, and
+    the n-th env a process makes starts from seed n.'''
+
+    made = 0
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        SeededOnce.made += 1
+        self.own_seed = SeededOnce.made
+
+    def reset(self, *, seed=None, options=None):
+        seed, self.own_seed = self.own_seed, None
+        return super().reset(seed=seed, options=options)
+
+
+gym.register("SeededOnce-v0", entry_point=SeededOnce, max_episode_steps=200)
+
+
+def damping(obs):
+    return [-float(obs[2])]
+"""
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_an_env_that_ignores_its_reset_seed_is_refused_by_the_paired_estimator_and_measured_unpaired_by_auto(script, tmp_path):
+    """The paired estimator runs the baseline from each training episode's reset seed; an env that
+    ignores it would compare episodes from different states. The scripts see it at the first episode."""
+    (tmp_path / "seeded_once.py").write_text(SEEDED_ONCE_ENV)
+    args = ["--env-id", "seeded_once:SeededOnce-v0", "--baseline", "seeded_once:damping", "--hidden-size", "16",
+            "--baseline-eval-episodes", "2", *BUDGETS[script]]  # fmt: skip
+    refused = run_script(ROOT / f"{script}.py", [*args, "--regret-estimator", "paired"], tmp_path)
+    assert refused.returncode == 1
+    assert refused.stderr.strip().splitlines() == [f"{script}: error: seeded_once:SeededOnce-v0 does not reproduce a seeded reset;"
+                                                   " use --regret-estimator unpaired"], refused.stderr  # fmt: skip
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    assert "charts/episodic_return" not in scalars(run_dir), "refused before any training step"
+    shutil.rmtree(tmp_path / "runs")
+
+    out = run_script(ROOT / f"{script}.py", args, tmp_path)  # --regret-estimator auto
+    assert out.returncode == 0, out.stderr
+    assert "baseline regret estimator: unpaired" in out.stdout
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    logged = scalars(run_dir)
+    per_step = logged["charts/baseline_reward_per_step"][0]
+    returns, lengths = np.array(logged["charts/episodic_return"]), np.array(logged["charts/episodic_length"])
+    assert lengths.tolist() == [200, 200]
+    # each episode's regret against a baseline earning its measured reward per step: max(0, b L - R)
+    np.testing.assert_allclose(logged["charts/baseline_regret"], np.cumsum(np.maximum(0.0, per_step * lengths - returns)), rtol=1e-5)
+
+
+SCENARIO_ENV = """
+import os
+
+import gymnasium as gym
+from gymnasium.envs.classic_control.pendulum import PendulumEnv
+
+
+class ScenarioPendulum(PendulumEnv):
+    '''Pendulum served by a scenario server that goes away during the run: from the FAIL_AT-th reset from
+    seed 1,000,001 (the first evaluation episode's at --seed 1) on, that reset raises.'''
+
+    resets = 0
+
+    def reset(self, *, seed=None, options=None):
+        if seed == 1_000_001:
+            ScenarioPendulum.resets += 1
+            if ScenarioPendulum.resets >= int(os.environ["FAIL_AT"]):
+                raise ConnectionError("the scenario server is gone")
+        return super().reset(seed=seed, options=options)
+
+
+gym.register("Scenario-v0", entry_point=ScenarioPendulum, max_episode_steps=200)
+
+
+def damping(obs):
+    return [-float(obs[2])]
+"""
+# seed 1,000,001 is reset by the baseline's measurement, then by each evaluation: PPO+IL's and TRPO+IL's of
+# the cloned policy first, and last every script's of the trained one
+FINAL_EVALUATION = {"sac_continuous": 2, "jirl_sac_continuous": 2, "ppo_il": 3, "trpo_il": 3}
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_an_env_failing_in_the_final_evaluation_ends_the_run_with_its_model_and_logs_kept(script, tmp_path):
+    (tmp_path / "scenario.py").write_text(SCENARIO_ENV)
+    line = SCENARIO_ENV.splitlines().index('                raise ConnectionError("the scenario server is gone")') + 1
+    args = ["--env-id", "scenario:Scenario-v0", "--baseline", "scenario:damping", "--hidden-size", "16",
+            "--baseline-eval-episodes", "1", "--eval-episodes", "1", "--save-model", *BUDGETS[script]]  # fmt: skip
+    out = run_script(ROOT / f"{script}.py", args, tmp_path, dict(os.environ, FAIL_AT=str(FINAL_EVALUATION[script])))
+    assert out.returncode == 1
+    assert out.stderr.strip().splitlines()[-1] == (f"{script}: error: scenario:Scenario-v0 raised ConnectionError (scenario.py, line {line})"
+                                                   " at reset seed 1000001: the scenario server is gone"), out.stderr  # fmt: skip
+    assert "ConnectionError: the scenario server is gone" in out.stderr  # the env's own traceback, where it arose
+    (run_dir,) = (tmp_path / "runs").iterdir()
+    model = run_dir / f"{script}.cleanrl_model"
+    assert f"model saved to runs/{run_dir.name}/{script}.cleanrl_model" in out.stdout and "eval:" not in out.stdout
+    assert ("cloned policy: mean return" in out.stdout) == script.endswith("_il")  # the evaluation before the server went
+    assert np.isfinite(load_script(script).evaluate(str(model), "Pendulum-v1", 1, 0)[0])
+    logged = scalars(run_dir)  # the training's logs, written out although the run ended on an error
+    assert logged["charts/episodic_length"] == [200, 200] and len(logged["charts/baseline_regret"]) == 2
+    assert "eval/episodic_return" not in logged
 
 
 # every make_env: each script's with envs/ and with its own gym.make (fallback, as when copied alone), and envs'
