@@ -26,7 +26,7 @@ from conftest import CAR_TRAIN_FAST as FAST, ROOT, fill_the_disk_for, overflow_t
 from test_stopping import LOST_HEADER, on_a_terminal
 
 jetracer = pytest.importorskip("deploy.jetracer")
-from envs.car_interface import ActionMapping  # noqa: E402
+from envs.car_interface import FRAME_SHAPE, ActionMapping  # noqa: E402
 
 # the mock controller's longest watchdog: a test that checks no watchdog need not fail where a loaded machine starves the link's
 # send thread for the default 250 ms
@@ -45,6 +45,61 @@ def test_baseline_mode_drives_the_simulated_car_through_the_protocol(tmp_path):
     rewards = jetracer.baseline(jetracer.Baseline(steps=60, log_dir=str(tmp_path)))
     assert len(rewards) == 60
     assert np.allclose(rewards, 1.075)  # 1 + 0.1 * 0.45 / 0.6: the baseline's slowest throttle, never off the lane
+
+
+def record_the_track(path: Path, frames: int) -> str:
+    """`frames` of the simulated track's camera, driving straight on at the slowest throttle, recorded as a
+    JetRacer's camera would be (MJPG at 20 fps): a `file:` camera that shows lanes."""
+    import cv2
+    from envs.jetracer_track import JetRacerTrackEnv
+
+    env = JetRacerTrackEnv()
+    env.reset(seed=0)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 20, (FRAME_SHAPE[1], FRAME_SHAPE[0]))
+    for step in range(frames):
+        writer.write(env.camera_frame_bgr())
+        _, _, terminated, truncated, _ = env.step(np.array([0.0, -1.0], np.float32))
+        if terminated or truncated:
+            env.reset(seed=step)
+    writer.release()
+    env.close()
+    return str(path)
+
+
+def test_the_car_without_the_simulator_drives_and_trains_over_a_serial_port(tmp_path, capsys):
+    """The real car's configuration: no SimWorld (the port is a serial device, not mockjetracer://), the
+    controller's firmware behind a pseudo-terminal opened by pyserial, and a recorded camera. The
+    baseline drives; then JIRL trains with the unpaired regret alone, as on the car: no twin to pair
+    with, so no paired regret is logged or printed (a 0 there would read as none)."""
+    from deploy.mock_controller import PtyController
+
+    common = dict(camera=f"file:{record_the_track(tmp_path / 'drive.avi', 300)}", log_dir=str(tmp_path / "logs"), watchdog_ms=2000)
+    controller = PtyController()
+    try:
+        common["port"] = controller.path
+        rewards = jetracer.baseline(jetracer.Baseline(steps=60, **common))
+        assert rewards == [pytest.approx(1.075)] * 60  # 1 + 0.1 * 0.45 / 0.6: the baseline's slowest throttle, no lane departure seen
+        assert [what for _, what in controller.controller.log] == ["armed", "e-stop"]  # no NACK, no watchdog, e-stopped at the end
+        hp = replace(jetracer.car_jirl_defaults(), hidden_size=16, batch_size=16, learning_starts=30, guidance_steps=27_000)  # the baseline keeps control
+        state = tmp_path / "train.pt"
+        counters = jetracer.train(jetracer.Train(total_steps=120, train_every=40, gradient_steps=2, checkpoint=str(state), baseline_reward_per_step=1.2,
+                                                 jirl=hp, **common))  # fmt: skip
+        assert [what for _, what in controller.controller.log] == ["armed", "e-stop", "armed", "e-stop"]
+    finally:
+        controller.close()
+    assert counters["step"] == 120 and counters["fabricated_transitions"] == 119 and counters["updates"] > 0
+    assert counters["baseline_regret_per_step"] == pytest.approx((1.2 - 1.075) * 119)  # sum_t max(0, b - r_t), r_t = 1.075
+    out = capsys.readouterr().out
+    assert "paired_regret_per_step" not in counters and "paired" not in out and "lap times" not in out
+    saved = torch.load(state, weights_only=True)
+    assert saved["counters"]["step"] == 120 and saved["counters"]["paired_regret_per_step"] == 0.0  # the state's one layout
+    baseline_logs, train_logs = sorted((tmp_path / "logs").iterdir())
+    for run_dir in (baseline_logs, train_logs):
+        events = EventAccumulator(str(run_dir))
+        events.Reload()
+        tags = events.Tags()["scalars"]
+        assert "charts/lap_time" not in tags and [e.value for e in events.Scalars("loop/frames_dropped")][-1] == 0
+    assert "charts/baseline_regret_per_step" in tags and "charts/paired_regret_per_step" not in tags
 
 
 def test_a_stale_camera_stops_the_car(tmp_path):
