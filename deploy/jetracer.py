@@ -779,6 +779,8 @@ def train_holding(args: Train) -> dict:
         shadow = SimWorld(_NullController(), seed=args.seed)
         shadow_follower, shadow_previous = LaneFollower(), np.array(START_ACTION, dtype=np.float32)
         shadow_safety = SafetyFilter(session.mapping, args.max_steering_rate, session.period)  # the car's filter acts on the baseline too
+    # a real car has no twin to pair with: it logs no paired regret rather than a paired regret of 0
+    logged = ("fabricated_transitions", "control_switches", "baseline_regret_per_step", *(("paired_regret_per_step",) if shadow is not None else ()))
     previous: Optional[tuple] = None  # (obs, stored action, rl_action, rl_acted, throttle, baseline action, twin's reward)
     obs = None
     lock = threading.Lock()  # the background learner's updates against the loop's buffer writes
@@ -895,8 +897,8 @@ def train_holding(args: Train) -> dict:
             if step % hp.log_every == 0:
                 session.log(step)
                 session.writer.add_scalar("charts/rl_control_fraction", sum(rl_control) / len(rl_control), step)
-                for key in ("fabricated_transitions", "control_switches", "baseline_regret_per_step", *(("paired_regret_per_step",) if shadow is not None else ())):
-                    session.writer.add_scalar(f"charts/{key}", counters[key], step)  # a real car has no twin to pair with: no paired regret, not 0
+                for key in logged:
+                    session.writer.add_scalar(f"charts/{key}", counters[key], step)
             session.wait()
         finished.set()
         if learner is not None:
@@ -909,7 +911,7 @@ def train_holding(args: Train) -> dict:
         session.close()
         if shadow is not None:
             shadow.close()
-    if shadow is None:  # kept at 0 in the training state, which has one layout, but said nowhere
+    if shadow is None:  # nor prints or returns one; the training state keeps it at 0, so that states have one layout
         del counters["paired_regret_per_step"]
     counters["rl_control_fraction"] = sum(rl_control) / len(rl_control) if rl_control else 0.0
     print("train: " + ", ".join(f"{key} {value:.4g}" if isinstance(value, float) else f"{key} {value}" for key, value in counters.items()))

@@ -325,10 +325,6 @@ class SeededOnce(PendulumEnv):
 
 
 gym.register("SeededOnce-v0", entry_point=SeededOnce, max_episode_steps=200)
-
-
-def damping(obs):
-    return [-float(obs[2])]
 """
 
 
@@ -337,7 +333,7 @@ def test_an_env_that_ignores_its_reset_seed_is_refused_by_the_paired_estimator_a
     """The paired estimator runs the baseline from each training episode's reset seed; an env that
     ignores it would compare episodes from different states. The scripts see it at the first episode."""
     (tmp_path / "seeded_once.py").write_text(SEEDED_ONCE_ENV)
-    args = ["--env-id", "seeded_once:SeededOnce-v0", "--baseline", "seeded_once:damping", "--hidden-size", "16",
+    args = ["--env-id", "seeded_once:SeededOnce-v0", "--baseline", "envs.pendulum:pendulum_swing_up", "--hidden-size", "16",
             "--baseline-eval-episodes", "2", *BUDGETS[script]]  # fmt: skip
     refused = run_script(ROOT / f"{script}.py", [*args, "--regret-estimator", "paired"], tmp_path)
     assert refused.returncode == 1
@@ -381,10 +377,6 @@ class ScenarioPendulum(PendulumEnv):
 
 
 gym.register("Scenario-v0", entry_point=ScenarioPendulum, max_episode_steps=200)
-
-
-def damping(obs):
-    return [-float(obs[2])]
 """
 # seed 1,000,001 is reset by the baseline's measurement, then by each evaluation: PPO+IL's and TRPO+IL's of
 # the cloned policy first, and last every script's of the trained one
@@ -395,7 +387,7 @@ FINAL_EVALUATION = {"sac_continuous": 2, "jirl_sac_continuous": 2, "ppo_il": 3, 
 def test_an_env_failing_in_the_final_evaluation_ends_the_run_with_its_model_and_logs_kept(script, tmp_path):
     (tmp_path / "scenario.py").write_text(SCENARIO_ENV)
     line = SCENARIO_ENV.splitlines().index('                raise ConnectionError("the scenario server is gone")') + 1
-    args = ["--env-id", "scenario:Scenario-v0", "--baseline", "scenario:damping", "--hidden-size", "16",
+    args = ["--env-id", "scenario:Scenario-v0", "--baseline", "envs.pendulum:pendulum_swing_up", "--hidden-size", "16",
             "--baseline-eval-episodes", "1", "--eval-episodes", "1", "--save-model", *BUDGETS[script]]  # fmt: skip
     out = run_script(ROOT / f"{script}.py", args, tmp_path, dict(os.environ, FAIL_AT=str(FINAL_EVALUATION[script])))
     assert out.returncode == 1
