@@ -76,6 +76,9 @@ class OpenCVCamera:
         self._stop = threading.Event()
         self.frames_read = 0
         ok, frame = self.capture.read()
+        if not ok and not realtime:  # a live camera's first frame may come late; a video that gives none has none
+            self.capture.release()
+            raise ValueError(f"camera {source!r} gave no frame: an empty video, or one in a codec this OpenCV cannot decode")
         if ok:
             try:
                 frame = to_policy_frame(frame)

@@ -1454,6 +1454,7 @@ def test_train_hands_over_within_its_own_total_steps_and_a_resume_keeps_that_hor
     "option, message",
     [
         (["--camera", "file:no_such_video.mp4"], "baseline: error: cannot open camera 'no_such_video.mp4'"),
+        (["--camera", "file:{tmp}/empty.avi"], "baseline: error: camera '{tmp}/empty.avi' gave no frame: an empty video, or one in a codec this OpenCV cannot decode"),
         (["--camera", "usb:left"], "usb:N takes a device number N"),
         (["--camera", "webcam"], "baseline: error: unknown camera 'webcam': use csi, usb:N, file:PATH or sim"),
         (["--gamepad", "/dev/input/no_such_js"], "cannot open gamepad '/dev/input/no_such_js': No such file or directory"),
@@ -1463,6 +1464,10 @@ def test_train_hands_over_within_its_own_total_steps_and_a_resume_keeps_that_hor
     ],
 )
 def test_missing_hardware_is_a_one_line_error_before_the_car_is_armed(tmp_path, option, message):
+    import cv2
+
+    cv2.VideoWriter(str(tmp_path / "empty.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 20, (FRAME_SHAPE[1], FRAME_SHAPE[0])).release()  # opens, has no frame
+    option, message = [part.format(tmp=tmp_path) for part in option], message.format(tmp=tmp_path)
     args = ["baseline", "--steps", "5", "--log-dir", str(tmp_path / "runs"), *option]
     out = subprocess.run([sys.executable, "-m", "deploy.jetracer", *args], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert out.returncode != 0 and message in out.stderr.strip().splitlines()[-1], out.stderr  # above it, pybullet's banner

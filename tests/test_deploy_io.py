@@ -85,6 +85,28 @@ def test_a_live_camera_has_its_first_frame_at_open_and_reads_on_after_a_missed_f
     assert not camera._thread.is_alive()
 
 
+def test_a_live_camera_whose_first_frame_is_late_opens_and_a_video_without_one_is_refused(monkeypatch, tmp_path):
+    class Starting(ScriptedCapture):  # no frame at the first read, as a camera that is still starting
+        def read(self):
+            if self.first:
+                self.first = False
+                return False, None
+            return super().read()
+
+    monkeypatch.setattr(cv2, "VideoCapture", Starting)
+    camera = io.open_camera("usb:0")
+    assert camera.read() == (None, 0.0) and camera.frames_read == 0  # stale until the reader has a frame
+    camera.capture.reads.put(100)
+    deadline = time.monotonic() + 10
+    while camera.frames_read < 1 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert camera.read()[0].mean() == 100
+    camera.capture.reads.put(None)  # lets the reader's last read return, so that close() can join it
+    camera.close()
+    with pytest.raises(ValueError, match=r"^camera 'drive.avi' gave no frame: an empty video, or one in a codec this OpenCV cannot decode$"):
+        io.open_camera("file:drive.avi")  # the same capture, read as a video: no first frame is none at all
+
+
 def test_the_csi_camera_opens_the_jetsons_gstreamer_pipeline_at_the_policys_frame_size(monkeypatch):
     with pytest.raises(ValueError, match=r"^cannot open camera 'nvarguscamerasrc ! "):  # off the car: one line naming the pipeline
         io.open_camera("csi")
