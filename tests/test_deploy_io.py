@@ -85,13 +85,18 @@ def test_a_live_camera_has_its_first_frame_at_open_and_reads_on_after_a_missed_f
     assert not camera._thread.is_alive()
 
 
-def test_a_live_camera_whose_first_frame_is_late_opens_and_a_video_without_one_is_refused(monkeypatch, tmp_path):
+def test_a_live_camera_whose_first_frame_is_late_opens_and_a_video_without_one_is_refused(monkeypatch):
+    released = []
+
     class Starting(ScriptedCapture):  # no frame at the first read, as a camera that is still starting
         def read(self):
             if self.first:
                 self.first = False
                 return False, None
             return super().read()
+
+        def release(self):
+            released.append(self)
 
     monkeypatch.setattr(cv2, "VideoCapture", Starting)
     camera = io.open_camera("usb:0")
@@ -105,6 +110,7 @@ def test_a_live_camera_whose_first_frame_is_late_opens_and_a_video_without_one_i
     camera.close()
     with pytest.raises(ValueError, match=r"^camera 'drive.avi' gave no frame: an empty video, or one in a codec this OpenCV cannot decode$"):
         io.open_camera("file:drive.avi")  # the same capture, read as a video: no first frame is none at all
+    assert len(released) == 2 and released[0] is camera.capture  # the refused video's capture released too
 
 
 def test_the_csi_camera_opens_the_jetsons_gstreamer_pipeline_at_the_policys_frame_size(monkeypatch):
