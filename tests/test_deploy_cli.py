@@ -1464,9 +1464,10 @@ def test_train_hands_over_within_its_own_total_steps_and_a_resume_keeps_that_hor
     ],
 )
 def test_missing_hardware_is_a_one_line_error_before_the_car_is_armed(tmp_path, option, message):
-    import cv2
+    if "file:{tmp}/empty.avi" in option:  # a video that opens and has no frame
+        import cv2
 
-    cv2.VideoWriter(str(tmp_path / "empty.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 20, (FRAME_SHAPE[1], FRAME_SHAPE[0])).release()  # opens, has no frame
+        cv2.VideoWriter(str(tmp_path / "empty.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 20, (FRAME_SHAPE[1], FRAME_SHAPE[0])).release()
     option, message = [part.format(tmp=tmp_path) for part in option], message.format(tmp=tmp_path)
     args = ["baseline", "--steps", "5", "--log-dir", str(tmp_path / "runs"), *option]
     out = subprocess.run([sys.executable, "-m", "deploy.jetracer", *args], cwd=ROOT, capture_output=True, text=True, timeout=60)
