@@ -81,6 +81,7 @@ def main() -> None:
         row = compare(lambda impl, seed: command(impl, algo, args.env_id, args.steps, seed), args.steps, args.repeats, args.workdir)
         print(f"| {algo} | {row}", flush=True)
 
+
 if __name__ == "__main__":
     stop_children_on_sigterm()
     main()

@@ -97,6 +97,7 @@ def main() -> None:
                 row += f" {statistics.median(sps['sac_before']):.1f} | {ratio_cell(sps, 'sac_continuous', 'sac_before')} |"
             print(row + f" {args.repeats} |", flush=True)
 
+
 if __name__ == "__main__":
     stop_children_on_sigterm()
     main()

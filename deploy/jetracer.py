@@ -790,6 +790,7 @@ def train_holding(args: Train) -> dict:
     if args.learner == "background":
         learner = threading.Thread(target=background_learner, args=(sac, rb, counters, args, lock, finished), daemon=True)
         learner.start()
+
     def optimise(step: int) -> None:
         """Pause-and-train: the car waits, stopped, for --gradient-steps updates."""
         session.link.stop()
