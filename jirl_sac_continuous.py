@@ -59,7 +59,7 @@ class Args:
     wandb_project_name: str = "jirl"
     """the Weights and Biases project of --track"""
     wandb_entity: Optional[str] = None
-    """the Weights and Biases entity (a user or a team) of --track (default: your account's default entity)"""
+    """the Weights and Biases entity (a user or a team) of --track; None: your account's default entity"""
     capture_video: bool = False
     """whether to record videos of the agent to `videos/{run_name}` (needs moviepy)"""
     save_model: bool = False
@@ -101,7 +101,7 @@ class Args:
 
     # Baseline regret
     baseline: str = ""
-    """baseline controller as module:function returning env-unit actions (default: this project's baseline for env_id)"""
+    """baseline controller as module:function returning env-unit actions; empty: this project's baseline for env_id"""
     regret_estimator: Literal["auto", "paired", "unpaired", "off"] = "auto"
     """paired: a shadow env runs the baseline from each training episode's reset seed; unpaired: the baseline's mean reward per step; auto: paired when the env reproduces a seeded reset"""
     baseline_eval_episodes: int = 10
@@ -113,7 +113,7 @@ class Args:
     gate_k: int = 5
     """the gate's window K (Alg. 3): steps whose densities and divergences are multiplied"""
     guidance_steps: Optional[int] = None
-    """C decays over this many steps (earned ones with the earned schedule) and is 0 after, handing control to the agent (default: half of --total-timesteps; 0: the paper's constant C)"""
+    """C decays over this many steps (earned ones with the earned schedule) and is 0 after, handing control to the agent; None: half of --total-timesteps; 0: the paper's constant C"""
     guidance_schedule: Literal["earned", "geometric", "linear"] = "earned"
     """earned: log C falls toward log 1e-6 (then C = 0) only while the agent's recent episodes keep up with the baseline's, and rises back when they fall behind; geometric: log C falls linearly with the steps; linear: C falls linearly to 0"""
     handover_episodes: int = 5

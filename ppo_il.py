@@ -52,6 +52,9 @@ DEFAULTS = dict(num_steps=2048, gamma=0.99, gae_lambda=0.95, update_epochs=10, l
 
 @dataclass
 class Args:
+    """PPO+IL: a policy cloned from the baseline, then trained by PPO. An algorithm option left at None takes
+    RL Zoo's tuned value for --env-id, else a generic default, as its help lists, unless it says otherwise."""
+
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment"""
     seed: int = 1
@@ -63,7 +66,7 @@ class Args:
     wandb_project_name: str = "jirl"
     """the Weights and Biases project of --track"""
     wandb_entity: Optional[str] = None
-    """the Weights and Biases entity (a user or a team) of --track (default: your account's default entity)"""
+    """the Weights and Biases entity (a user or a team) of --track; None: your account's default entity"""
     capture_video: bool = False
     """whether to record videos of the agent to `videos/{run_name}` (needs moviepy)"""
     save_model: bool = False
@@ -71,7 +74,7 @@ class Args:
     eval_episodes: int = 10
     """deterministic evaluation episodes after training (with --save-model)"""
 
-    # Algorithm specific arguments (None: RL Zoo's tuned value for env_id, else a generic default)
+    # Algorithm specific arguments
     env_id: str = "Pendulum-v1"
     """the id of the environment (any Gymnasium env with a Box action space)"""
     total_timesteps: int = 100_000
@@ -103,7 +106,7 @@ class Args:
     max_grad_norm: float = 0.5
     """the maximum norm for the gradient clipping (inf: no clipping)"""
     target_kl: Optional[float] = None
-    """stop the epochs of a rollout early past this approximate KL"""
+    """stop the epochs of a rollout early past this approximate KL; None: never"""
     norm_obs: bool = False
     """normalize observations by running statistics (saved in the checkpoint)"""
     norm_reward: bool = False
@@ -131,7 +134,7 @@ class Args:
 
     # Baseline regret
     baseline: str = ""
-    """baseline controller as module:function returning env-unit actions (default: this project's baseline for env_id)"""
+    """baseline controller as module:function returning env-unit actions; empty: this project's baseline for env_id"""
     regret_estimator: Literal["auto", "paired", "unpaired", "off"] = "auto"
     """paired: a shadow env runs the baseline from each training episode's reset seed; unpaired: the baseline's mean reward per step; auto: paired when the env reproduces a seeded reset"""
     baseline_eval_episodes: int = 10

@@ -56,7 +56,7 @@ class Args:
     wandb_project_name: str = "jirl"
     """the Weights and Biases project of --track"""
     wandb_entity: Optional[str] = None
-    """the Weights and Biases entity (a user or a team) of --track (default: your account's default entity)"""
+    """the Weights and Biases entity (a user or a team) of --track; None: your account's default entity"""
     capture_video: bool = False
     """whether to record videos of the agent to `videos/{run_name}` (needs moviepy)"""
     save_model: bool = False
@@ -98,7 +98,7 @@ class Args:
 
     # Baseline regret
     baseline: str = ""
-    """baseline controller as module:function returning env-unit actions (default: this project's baseline for env_id)"""
+    """baseline controller as module:function returning env-unit actions; empty: this project's baseline for env_id"""
     regret_estimator: Literal["auto", "paired", "unpaired", "off"] = "auto"
     """paired: a shadow env runs the baseline from each training episode's reset seed; unpaired: the baseline's mean reward per step; auto: paired when the env reproduces a seeded reset"""
     baseline_eval_episodes: int = 10

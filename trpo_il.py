@@ -54,6 +54,9 @@ TUNED = {
 
 @dataclass
 class Args:
+    """TRPO+IL: a policy cloned from the baseline, then trained by TRPO. An algorithm option left at None takes
+    RL Zoo's tuned value for --env-id, else a generic default, as its help lists."""
+
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment"""
     seed: int = 1
@@ -65,7 +68,7 @@ class Args:
     wandb_project_name: str = "jirl"
     """the Weights and Biases project of --track"""
     wandb_entity: Optional[str] = None
-    """the Weights and Biases entity (a user or a team) of --track (default: your account's default entity)"""
+    """the Weights and Biases entity (a user or a team) of --track; None: your account's default entity"""
     capture_video: bool = False
     """whether to record videos of the agent to `videos/{run_name}` (needs moviepy)"""
     save_model: bool = False
@@ -73,7 +76,7 @@ class Args:
     eval_episodes: int = 10
     """deterministic evaluation episodes after training (with --save-model)"""
 
-    # Algorithm specific arguments (None: RL Zoo's tuned value for env_id, else a generic default)
+    # Algorithm specific arguments
     env_id: str = "Pendulum-v1"
     """the id of the environment (any Gymnasium env with a Box action space)"""
     total_timesteps: int = 100_000
@@ -129,7 +132,7 @@ class Args:
 
     # Baseline regret
     baseline: str = ""
-    """baseline controller as module:function returning env-unit actions (default: this project's baseline for env_id)"""
+    """baseline controller as module:function returning env-unit actions; empty: this project's baseline for env_id"""
     regret_estimator: Literal["auto", "paired", "unpaired", "off"] = "auto"
     """paired: a shadow env runs the baseline from each training episode's reset seed; unpaired: the baseline's mean reward per step; auto: paired when the env reproduces a seeded reset"""
     baseline_eval_episodes: int = 10
