@@ -48,6 +48,9 @@ BASELINE_ACTION_EPS = 1e-3  # a^b is clipped into [-1 + eps, 1 - eps], where the
 
 @dataclass
 class Args:
+    """JIRL (Dey et al., arXiv 2209.09446): SAC trained while a gate gives each step to the agent or to a baseline
+    controller, whose actions the agent learns to imitate through fabricated transitions until it takes over."""
+
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment"""
     seed: int = 1

@@ -45,6 +45,9 @@ FUSED_ADAM = tuple(int(v) for v in torch.__version__.split(".")[:2]) >= (2, 4)  
 
 @dataclass
 class Args:
+    """Soft Actor-Critic on a Gymnasium env with a Box action space, logging its baseline regret against a baseline
+    controller (the env's own in envs/, or --baseline)."""
+
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment"""
     seed: int = 1
