@@ -1005,6 +1005,8 @@ if __name__ == "__main__":
         print(f"baseline regret estimator: {estimator}")
         writer.add_text("baseline_regret_estimator", estimator)
 
+    if args.learning_starts >= args.total_timesteps:  # allowed (a run of the baseline and an untrained agent), but rarely meant
+        print(f"note: --learning-starts {args.learning_starts} is not below --total-timesteps {args.total_timesteps}: the agent is never updated")
     stop = StopRequest()  # from here Ctrl-C, SIGTERM, or an env, a baseline or the logs failing ends the training, keeping what was learnt
     sound, diverged = None, ""  # (step, actor, critics) at the last episode end whose weights were all finite; what diverged
     for global_step in range(args.total_timesteps):

@@ -546,3 +546,19 @@ def test_the_readmes_saved_policy_snippet_runs(tmp_path, sac):
     assert out.returncode == 0, out.stderr
     shape, reward = out.stdout.rsplit(")", 1)
     assert shape == "(3," and -16.3 < float(reward) <= 0.0  # a Pendulum step's reward
+
+
+@pytest.mark.parametrize("script", ["sac_continuous", "jirl_sac_continuous"])
+def test_a_run_that_never_reaches_learning_starts_says_so(tmp_path, monkeypatch, capsys, script):
+    """--learning-starts at or past --total-timesteps is allowed (it runs the baseline and an untrained agent),
+    but a quick trial with the default 5,000 and a few thousand steps would otherwise end with no update and
+    no word of it. A run that does learn says nothing."""
+    monkeypatch.chdir(tmp_path)
+    for learning_starts, updated in (("250", False), ("249", True)):
+        monkeypatch.setattr(sys, "argv", [f"{script}.py", *SHORT_RUNS[script], "--learning-starts", learning_starts, "--baseline-eval-episodes", "1"])
+        g = runpy.run_path(str(ROOT / f"{script}.py"), run_name="__main__")
+        assert bool(g["sac"].q_optimizer.state) is updated  # Adam keeps state once it has taken a step
+        out = capsys.readouterr().out
+        note = f"note: --learning-starts {learning_starts} is not below --total-timesteps 250: the agent is never updated"
+        assert (note in out.splitlines()) is not updated
+        assert ("note:" in out) is not updated
