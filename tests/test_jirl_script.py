@@ -1,6 +1,7 @@
 """jirl_sac_continuous.py end to end: buffer accounting, intervention mode, logging, copyability, errors."""
 
 import os
+import re
 import runpy
 import shutil
 import sys
@@ -192,6 +193,21 @@ def test_end_to_end_logs_gate_and_regret(tmp_path):
     (checkpoint,) = run_dir.glob("*.cleanrl_model")
     sac = load_script("sac_continuous")
     assert sac.evaluate(str(checkpoint), "Pendulum-v1", 1, 1) == pytest.approx(logged["eval/episodic_return"], rel=1e-5)
+    # the run ends by printing the regret it logged at its last episode end (420 steps: 2 episodes of 200)
+    ((episode_form, per_step),) = re.findall(r"^baseline regret \(paired\): ([\d,.]+) in the episode form, ([\d,.]+) per step$", out.stdout, re.M)
+    assert float(episode_form.replace(",", "")) == pytest.approx(logged["charts/baseline_regret"][-1], abs=0.05)
+    assert float(per_step.replace(",", "")) == pytest.approx(logged["charts/baseline_regret_per_step"][-1], abs=0.05)
+
+
+def test_the_run_ends_by_printing_who_held_control(tmp_path, monkeypatch, capsys):
+    """10 episodes of 5 steps from reset seeds 1-10, the baseline intervening where t + parity is odd: it acts
+    at 3 steps of each odd-parity episode and 2 of each even one (25 of 50), control changes hands at every
+    step but an episode's first (4 switches an episode), and each baseline step stores a fabricated row. No
+    regret is measured, so none is printed."""
+    run_alternating(tmp_path, monkeypatch, "--intervention-mode", "--total-timesteps", "50")
+    out = capsys.readouterr().out.splitlines()
+    assert "RL control: 50% of the last 50 steps; 40 control switches, 25 fabricated transitions" in out
+    assert "baseline regret estimator: off" in out and not any(line.startswith("baseline regret (") for line in out)
 
 
 def test_gate_charts_are_the_means_of_the_gates_terms_since_the_last_log(tmp_path, monkeypatch):

@@ -136,6 +136,11 @@ def test_end_to_end_logs_saves_and_evaluates(tmp_path, sac):
     # regret is cumulative and the untrained agent is worse than the swing-up baseline
     assert logged["charts/baseline_regret"][1] >= logged["charts/baseline_regret"][0] > 0
     assert logged["losses/alpha"][-1] != 0.2, "the entropy coefficient was tuned"
+    # the run ends by printing the regret it logged at its last episode end (450 steps: 2 episodes of 200)
+    ((episode_form, per_step),) = re.findall(r"^baseline regret \(paired\): ([\d,.]+) in the episode form, ([\d,.]+) per step$", out.stdout, re.M)
+    assert float(episode_form.replace(",", "")) == pytest.approx(logged["charts/baseline_regret"][-1], abs=0.05)
+    assert float(per_step.replace(",", "")) == pytest.approx(logged["charts/baseline_regret_per_step"][-1], abs=0.05)
+    assert "RL control" not in out.stdout
 
     (checkpoint,) = run_dir.glob("*.cleanrl_model")
     returns = sac.evaluate(str(checkpoint), "Pendulum-v1", episodes=2, seed=1)
