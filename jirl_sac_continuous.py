@@ -1387,9 +1387,9 @@ if __name__ == "__main__":
     if stop.reason is not None:
         saving = "; saving the model" + (f" of step {rolled_back:,}, the last sound one," if rolled_back is not None else "") + " without evaluating it"
         print(f"{stop.reason}: training stopped at step {global_step:,} of {args.total_timesteps:,}" + (saving if args.save_model else ""), file=sys.stderr)
-    if estimator != "off":  # what the run cost against the baseline, the measure JIRL is judged by
+    if estimator != "off":  # what the run cost against the baseline: the measure of the paper's Table I
         print(f"baseline regret ({estimator}): {baseline_regret:,.1f} in the episode form, {baseline_regret_per_step:,.1f} per step")
-    if rl_control:  # Alg. 1's outcome: who held control at the end
+    if rl_control:  # who held control at the end: how far the hand-over went
         print(f"RL control: {sum(rl_control) / len(rl_control):.0%} of the last {len(rl_control):,} steps; "
               f"{control_switches:,} control switches, {fabricated_transitions:,} fabricated transitions")
     if args.save_model:

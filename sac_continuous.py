@@ -1096,7 +1096,7 @@ if __name__ == "__main__":
     if stop.reason is not None:
         saving = "; saving the model" + (f" of step {rolled_back:,}, the last sound one," if rolled_back is not None else "") + " without evaluating it"
         print(f"{stop.reason}: training stopped at step {global_step:,} of {args.total_timesteps:,}" + (saving if args.save_model else ""), file=sys.stderr)
-    if estimator != "off":  # what the run cost against the baseline, the measure JIRL is judged by
+    if estimator != "off":  # what the run cost against the baseline: the measure of the paper's Table I
         print(f"baseline regret ({estimator}): {baseline_regret:,.1f} in the episode form, {baseline_regret_per_step:,.1f} per step")
     if args.save_model:
         model_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
