@@ -178,10 +178,12 @@ class SimWorld:
         return self._laps_before_reset + self.info["lap_times"]
 
     def read(self) -> Frame:
+        """The car's camera frame now, (112, 112, 3) uint8 BGR as OpenCV gives a real camera's, and the time it was taken."""
         return self.env.camera_frame_bgr(), time.monotonic()
 
     @property
     def info(self) -> dict:
+        """The track env's info now: cross-track and heading error, speed, arc length, progress, laps and lap times."""
         return self.env._info()
 
     def close(self) -> None:

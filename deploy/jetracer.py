@@ -412,6 +412,7 @@ class CarSession:
         self._last_tick = now
 
     def timing(self) -> dict:
+        """The control loop's period over the last 2000 periods: median, 99th percentile and jitter, in ms."""
         periods = sorted(self.periods)
         if not periods:
             return {}
@@ -419,6 +420,7 @@ class CarSession:
         return {"period_p50_ms": 1000 * p50, "period_p99_ms": 1000 * p99, "jitter_ms": 1000 * statistics.pstdev(periods)}
 
     def log(self, step: int) -> None:
+        """Log the loop's timing, the link's round trips, dropped frames and new lap times at this step."""
         for key, value in self.timing().items():
             self.writer.add_scalar(f"loop/{key}", value, step)
         for key, value in self.link.round_trip_stats().items():

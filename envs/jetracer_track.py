@@ -237,6 +237,7 @@ class JetRacerTrackEnv(gym.Env):
             self._client.resetBasePositionAndOrientation(self._marker, [x - 0.1 * math.cos(yaw), y - 0.1 * math.sin(yaw), 0.04], orientation)
 
     def render(self) -> Optional[np.ndarray]:
+        """A chase view of the car, (256, 256, 3) uint8 RGB, for videos; None unless render_mode is "rgb_array"."""
         if self.render_mode != "rgb_array":
             return None
         self._marker_follows()

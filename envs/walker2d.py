@@ -111,6 +111,7 @@ class Walker2DBaseline:
         self.obs_dim = self.policy.fc1.in_features
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
+        """Observation, shape (obs_dim,) -> action float32 in env units, within the saved action bounds (6 torques)."""
         obs = np.asarray(obs, dtype=np.float32)
         if obs.shape != (self.obs_dim,):
             raise ValueError(f"the Walker2D baseline expects {self.obs_dim} observations, got shape {obs.shape}")
