@@ -216,3 +216,17 @@ def test_the_readmes_car_sections_state_the_defaults_in_code():
         assert all(found == expected for found in figures_stated(text, pattern)), (pattern, figures_stated(text, pattern), expected)
     # the entropy coefficient: tuned on the car, from the script's own starting value
     assert hp.autotune and figures_stated(real, r"The entropy coefficient is tuned from the script's ([\d.]*\d)") == [(hp.alpha,)] == [(load_script("jirl_sac_continuous").Args().alpha,)]
+
+
+def test_every_link_between_the_documents_names_a_file_of_the_repository():
+    """Relative markdown links (`[text](path)`, `![figure](path)`) of README.md, BENCHMARKS.md and docs/,
+    read from the folder of the document that holds them: a file moved or renamed must take its links along."""
+    links = 0
+    for document in DOCUMENTS:
+        for target in re.findall(r"\]\(([^)\s]+)\)", (ROOT / document).read_text()):
+            if re.match(r"[a-z]+://|#|mailto:", target):
+                continue
+            path = (ROOT / document).parent / target.split("#", 1)[0]
+            assert path.exists(), f"{document} links {target}, which is not in the repository"
+            links += 1
+    assert links >= 5, "the documents' links were not found: is the pattern still right?"
