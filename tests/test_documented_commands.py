@@ -2,7 +2,7 @@
 BENCHMARKS.md, docs/ and the benchmarks' docstrings; an option renamed or a rule tightened in code, and
 not in the text, would fail there, after the setup, for the first user who tries. Each command is parsed
 by its own program (tests/parse_only.py) and stops there: nothing trains. The README's tables of
-defaults are checked against the scripts' Args too."""
+defaults are checked against the scripts' Args too, and the documents' links against the files they name."""
 
 import ast
 import dataclasses
