@@ -9,6 +9,7 @@ CameraFailed, and the run ends at once. OpenCV and the simulator are imported la
 from __future__ import annotations
 
 import os
+import re
 import struct
 import threading
 import time
@@ -28,6 +29,13 @@ def csi_pipeline(width: int = FRAME_SHAPE[1], height: int = FRAME_SHAPE[0], fps:
         "nvvidconv ! video/x-raw, width=%d, height=%d, format=BGRx ! videoconvert ! video/x-raw, format=BGR ! "
         "appsink drop=true max-buffers=1" % (fps, width, height)
     )
+
+
+def has_gstreamer(build_information: str) -> bool:
+    """Whether an OpenCV build (`cv2.getBuildInformation()`) opens GStreamer pipelines; True where it does not say.
+    PyPI's opencv-python wheels are built without it, so a CSI camera can never open through them."""
+    match = re.search(r"^\s*GStreamer:\s*(\S+)", build_information, re.M)
+    return match is None or match.group(1).upper() != "NO"
 
 
 def to_policy_frame(frame: np.ndarray) -> np.ndarray:
@@ -199,6 +207,9 @@ def open_camera(spec: str, world: Optional[SimWorld] = None) -> Union[OpenCVCame
     if spec == "csi":
         import cv2
 
+        if not has_gstreamer(cv2.getBuildInformation()):  # else only "cannot open camera" would say so
+            raise ValueError(f"camera 'csi' needs OpenCV built with GStreamer, which this OpenCV {cv2.__version__} is not (PyPI's"
+                             " opencv-python wheels never are): on the Jetson use JetPack's OpenCV, or a USB camera (--camera usb:0)")
         return OpenCVCamera(csi_pipeline(), cv2.CAP_GSTREAMER)
     if spec.startswith("usb:"):
         if not spec[4:].isdigit():

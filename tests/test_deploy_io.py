@@ -113,8 +113,27 @@ def test_a_live_camera_whose_first_frame_is_late_opens_and_a_video_without_one_i
     assert len(released) == 2 and released[0] is camera.capture  # the refused video's capture released too
 
 
+def test_opencvs_build_information_tells_whether_it_opens_gstreamer_pipelines():
+    assert io.has_gstreamer("  Video I/O:\n    FFMPEG:                      YES\n    GStreamer:                   YES (1.16.3)\n")  # JetPack's
+    assert not io.has_gstreamer("  Video I/O:\n    FFMPEG:                      YES\n    GStreamer:                   NO\n")  # PyPI's wheels
+    assert io.has_gstreamer("  Video I/O:\n    FFMPEG:                      YES\n")  # a build that does not say: let the pipeline try
+
+
+def test_the_csi_camera_needs_an_opencv_built_with_gstreamer(monkeypatch):
+    """PyPI's opencv-python wheels have no GStreamer, so the CSI pipeline cannot open through them: that is said,
+    with what to use instead, rather than only "cannot open camera" with the pipeline."""
+    monkeypatch.setattr(cv2, "getBuildInformation", lambda: "  Video I/O:\n    GStreamer:                   NO\n")
+    opened = []
+    monkeypatch.setattr(cv2, "VideoCapture", lambda *args: opened.append(args))
+    with pytest.raises(ValueError, match=r"^camera 'csi' needs OpenCV built with GStreamer, which this OpenCV \S+ is not \(PyPI's opencv-python wheels"
+                                         r" never are\): on the Jetson use JetPack's OpenCV, or a USB camera \(--camera usb:0\)$"):
+        io.open_camera("csi")
+    assert opened == [], "refused before a capture is made"
+
+
 def test_the_csi_camera_opens_the_jetsons_gstreamer_pipeline_at_the_policys_frame_size(monkeypatch):
-    with pytest.raises(ValueError, match=r"^cannot open camera 'nvarguscamerasrc ! "):  # off the car: one line naming the pipeline
+    monkeypatch.setattr(cv2, "getBuildInformation", lambda: "  Video I/O:\n    GStreamer:                   YES (1.16.3)\n")  # as on the Jetson
+    with pytest.raises(ValueError, match=r"^cannot open camera 'nvarguscamerasrc ! "):  # but no camera here: one line naming the pipeline
         io.open_camera("csi")
     opened = []
 
