@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import errno
 import math
 import os
 import signal
@@ -261,7 +262,9 @@ class CarSession:
                                  watchdog_ms=args.watchdog_ms, throttle_cap=args.max_throttle).start()  # fmt: skip
         except OSError as err:  # serial.SerialException is one
             self._restore_signals()
-            raise SystemExit(f"{mode}: error: cannot open the motor controller: {err}") from None
+            # the first thing a new car's user meets: serial devices belong to the dialout group
+            access = "; the user needs read-write access to it (on Linux: sudo usermod -aG dialout $USER, then log in again)"
+            raise SystemExit(f"{mode}: error: cannot open the motor controller: {err}" + (access if err.errno == errno.EACCES else "")) from None
         try:  # a missing camera or gamepad ends the run before the car is armed, with the port closed
             self.world = SimWorld(self.link._port.controller, seed=args.seed) if args.port.startswith("mockjetracer") else None
             self.camera = open_camera(args.camera, self.world)

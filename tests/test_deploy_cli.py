@@ -1482,6 +1482,27 @@ def test_missing_hardware_is_a_one_line_error_before_the_car_is_armed(tmp_path, 
     assert not (tmp_path / "runs").exists()
 
 
+def test_a_serial_port_the_user_may_not_open_says_what_gives_access(tmp_path, monkeypatch):
+    """On a fresh Jetson the port belongs to the dialout group, which the user is not in: pyserial's EACCES is
+    named with the remedy. A port that is not there gets no such advice."""
+    import serial
+
+    def refused(url, **_):
+        raise serial.SerialException(errno.EACCES, f"could not open port {url}: [Errno 13] Permission denied: '{url}'")
+
+    monkeypatch.setattr(serial, "serial_for_url", refused)
+    with pytest.raises(SystemExit) as exit_info:
+        jetracer.baseline(jetracer.Baseline(steps=5, port="/dev/ttyACM0", log_dir=str(tmp_path)))
+    assert str(exit_info.value) == ("baseline: error: cannot open the motor controller: [Errno 13] could not open port /dev/ttyACM0: [Errno 13]"
+                                    " Permission denied: '/dev/ttyACM0'; the user needs read-write access to it (on Linux: sudo usermod -aG dialout $USER,"
+                                    " then log in again)")
+    monkeypatch.undo()
+    with pytest.raises(SystemExit) as exit_info:
+        jetracer.baseline(jetracer.Baseline(steps=5, port="/dev/no_such_tty", log_dir=str(tmp_path)))
+    assert "No such file or directory" in str(exit_info.value) and "dialout" not in str(exit_info.value)
+    assert not list(tmp_path.iterdir()), "no session folder for a car that never armed"
+
+
 def test_a_session_puts_the_signal_handlers_back_when_it_closes(tmp_path):
     def mine(*_):
         pass
