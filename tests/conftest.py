@@ -50,10 +50,10 @@ def figures_stated(text: str, pattern: str) -> list[tuple[float, ...]]:
     return matches
 
 
-def printed_regret(stdout: str) -> tuple[float, float]:
-    """The baseline regret a script prints when its training ends: (episode form, per step)."""
-    ((episode_form, per_step),) = re.findall(r"^baseline regret \(\w+\): ([\d,.]+) in the episode form, ([\d,.]+) per step$", stdout, re.M)
-    return float(episode_form.replace(",", "")), float(per_step.replace(",", ""))
+def printed_regret(stdout: str) -> tuple[float, ...]:
+    """The baseline regret a script prints when its training ends, once: (episode form, per step)."""
+    (regret,) = figures_stated(stdout, r"baseline regret \(\w+\): ([\d,.]+) in the episode form, ([\d,.]+) per step")
+    return regret
 
 
 def load_script(name: str):
