@@ -8,9 +8,11 @@ CameraFailed, and the run ends at once. OpenCV and the simulator are imported la
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 import struct
+import sys
 import threading
 import time
 from typing import Any, Dict, List, Optional, Protocol, Tuple, Union
@@ -36,6 +38,19 @@ def has_gstreamer(build_information: str) -> bool:
     PyPI's opencv-python wheels are built without it, so a CSI camera can never open through them."""
     match = re.search(r"^\s*GStreamer:\s*(\S+)", build_information, re.M)
     return match is None or match.group(1).upper() != "NO"
+
+
+def video_device_hint(index: int, platform: str = sys.platform) -> str:
+    """Why OpenCV could not open USB camera `index`, where Linux can tell (OpenCV says only that it could not): its
+    /dev/videoN is missing, or not open to the user, who on a Jetson must be in the video group; "" otherwise."""
+    path = f"/dev/video{index}"
+    if not platform.startswith("linux"):
+        return ""
+    if not os.path.exists(path):
+        return f": there is no {path} (`ls /dev/video*` lists the cameras Linux sees)"
+    if not os.access(path, os.R_OK | os.W_OK):  # V4L2 opens the device read-write
+        return f": the user may not open {path} (on Linux: sudo usermod -aG video $USER, then log in again)"
+    return ""
 
 
 def to_policy_frame(frame: np.ndarray) -> np.ndarray:
@@ -73,8 +88,8 @@ class OpenCVCamera:
         import cv2
 
         self.capture = cv2.VideoCapture(source, api) if api is not None else cv2.VideoCapture(source)
-        if not self.capture.isOpened():
-            raise ValueError(f"cannot open camera {source!r}")
+        if not self.capture.isOpened():  # a device number is a /dev/videoN, whose state may say why
+            raise ValueError(f"cannot open camera {source!r}" + (video_device_hint(source) if isinstance(source, int) else ""))
         self.source = source
         self.realtime = realtime  # False for a video file: one new frame per read, at the file's pace
         self._failure: Optional[str] = None  # why the reader thread ended, for read() to raise
@@ -256,7 +271,8 @@ class Gamepad:
         try:
             self.fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
         except OSError as err:
-            raise ValueError(f"cannot open gamepad {path!r}: {err.strerror}") from None
+            access = " (on Linux: sudo usermod -aG input $USER, then log in again)" if err.errno == errno.EACCES else ""
+            raise ValueError(f"cannot open gamepad {path!r}: {err.strerror}{access}") from None
         shape = joystick_shape(self.fd)
         if shape is None:
             # an evdev device (/dev/input/eventN) has 24-byte events: read as 8-byte ones they would be

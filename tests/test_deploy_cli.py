@@ -566,6 +566,26 @@ def test_a_device_that_is_no_joystick_is_refused_and_closed(tmp_path):
     assert len(os.listdir("/proc/self/fd")) == open_fds  # each refused descriptor was closed
 
 
+def test_a_gamepad_the_user_may_not_read_says_what_gives_access(monkeypatch):
+    """A joystick device the user may not read (EACCES) is named with the remedy, the input group; a missing one is not."""
+    from deploy import io
+
+    real_open = os.open
+
+    def refused(path, flags, *args):
+        if path == "/dev/input/js0":
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), path)
+        return real_open(path, flags, *args)
+
+    monkeypatch.setattr(io.os, "open", refused)
+    with pytest.raises(ValueError) as refusal:
+        io.Gamepad("/dev/input/js0")
+    assert str(refusal.value) == "cannot open gamepad '/dev/input/js0': Permission denied (on Linux: sudo usermod -aG input $USER, then log in again)"
+    with pytest.raises(ValueError) as refusal:
+        io.Gamepad("/dev/input/no_such_js")
+    assert str(refusal.value) == "cannot open gamepad '/dev/input/no_such_js': No such file or directory"
+
+
 @pytest.mark.parametrize(
     "option, missing",
     [(["--estop-button", "11"], "no --estop-button 11"), (["--takeover-axis", "8", "--steering-axis", "9"], "no --takeover-axis 8, --steering-axis 9")],
@@ -1462,6 +1482,7 @@ def test_train_hands_over_within_its_own_total_steps_and_a_resume_keeps_that_hor
         (["--camera", "file:no_such_video.mp4"], "baseline: error: cannot open camera 'no_such_video.mp4'"),
         (["--camera", "file:{tmp}/empty.avi"], "baseline: error: camera '{tmp}/empty.avi' gave no frame: an empty video, or one in a codec this OpenCV cannot decode"),
         (["--camera", "usb:left"], "usb:N takes a device number N"),
+        (["--camera", "usb:63"], "baseline: error: cannot open camera 63: there is no /dev/video63 (`ls /dev/video*` lists the cameras Linux sees)"),
         (["--camera", "webcam"], "baseline: error: unknown camera 'webcam': use csi, usb:N, file:PATH or sim"),
         (["--gamepad", "/dev/input/no_such_js"], "cannot open gamepad '/dev/input/no_such_js': No such file or directory"),
         (["--gamepad", "/dev/null"], "baseline: error: '/dev/null' is not a joystick device (/dev/input/jsN)"),

@@ -156,6 +156,38 @@ def test_the_csi_camera_opens_the_jetsons_gstreamer_pipeline_at_the_policys_fram
         camera.close()
 
 
+def test_a_usb_camera_that_does_not_open_says_whether_linux_has_it_and_lets_the_user_open_it(monkeypatch):
+    """OpenCV says only that it could not open camera N; on Linux its /dev/videoN says why: missing, or not open to
+    the user, whose remedy is the video group. A device the user may open adds nothing, nor do a file and another OS."""
+    modes = []
+
+    class Unopened:
+        def __init__(self, *args):
+            pass
+
+        def isOpened(self):
+            return False
+
+    monkeypatch.setattr(cv2, "VideoCapture", Unopened)
+    nodes = {"/dev/video0": True, "/dev/video1": False}  # /dev/video2 is missing
+    monkeypatch.setattr(io.os.path, "exists", lambda path: path in nodes)
+    monkeypatch.setattr(io.os, "access", lambda path, mode: modes.append(mode) or nodes[path])
+    with pytest.raises(ValueError) as refusal:
+        io.open_camera("usb:2")
+    assert str(refusal.value) == "cannot open camera 2: there is no /dev/video2 (`ls /dev/video*` lists the cameras Linux sees)"
+    with pytest.raises(ValueError) as refusal:
+        io.open_camera("usb:1")
+    assert str(refusal.value) == "cannot open camera 1: the user may not open /dev/video1 (on Linux: sudo usermod -aG video $USER, then log in again)"
+    assert modes == [io.os.R_OK | io.os.W_OK], "V4L2 opens the device read-write"
+    with pytest.raises(ValueError) as refusal:
+        io.open_camera("usb:0")
+    assert str(refusal.value) == "cannot open camera 0"  # there and open to the user: nothing the OS can add
+    with pytest.raises(ValueError) as refusal:
+        io.open_camera("file:video2")
+    assert str(refusal.value) == "cannot open camera 'video2'", "a file is no device"
+    assert io.video_device_hint(2, platform="darwin") == "" and io.video_device_hint(2, platform="win32") == ""
+
+
 def test_the_simulated_camera_needs_the_simulated_car():
     with pytest.raises(ValueError, match="camera 'sim' needs the simulator: use it with --port mockjetracer://"):
         io.open_camera("sim")
