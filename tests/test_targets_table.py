@@ -1,6 +1,7 @@
 """BENCHMARKS.md's table of the JIRL issue's targets repeats figures that its subsections state. A subsection
 measured again must not leave the table behind: every number of a row is one the subsection it names
-states, and every number of the notes under it one the table or the subsections they quote state."""
+states, and every number of the notes under it one the table or the subsections they quote state. The
+README's table of starting points repeats rows of it, and is checked against it in turn."""
 
 import re
 
@@ -43,3 +44,23 @@ def test_every_figure_of_the_targets_table_is_stated_where_it_says():
             stated |= numbers("".join(matching))
         missing = numbers(note) - stated
         assert not missing, f"the note {note[:40]!r} says {sorted(missing)}, which neither the table nor {quoted} does"
+
+
+def test_the_readmes_starting_points_are_rows_of_the_targets_table_and_parse():
+    """The README's "Where to start" gives, per env, settings and what they gave: its figures (seeds, returns,
+    regret ratio) are those of one row of BENCHMARKS.md's targets table, and its options are JIRL's."""
+    from test_documented_commands import parse
+
+    readme = (ROOT / "README.md").read_text()
+    start = readme.index("| env |", readme.index("**Where to start.**"))
+    table = readme[start : readme.index("\n\n", start)]
+    targets = subsections((ROOT / "BENCHMARKS.md").read_text())[TABLE].split("\n\n- ", 1)[0]
+    target_rows = [numbers(line) for line in targets.splitlines() if line.startswith("| ") and not line.startswith("| setting")]
+    rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in table.splitlines()[2:]]
+    assert [row[0].split(",")[0] for row in rows] == ["Pendulum-v1"] * 3 + ["LunarLanderContinuous-v3"] * 2 + ["JetRacerTrack-v0", "Walker2DBulletEnv-v0", "your own env"]
+    commands = []
+    for env, options, *figures in rows[:-1]:
+        stated = numbers(" ".join(figures))
+        assert any(stated <= row for row in target_rows), f"{env}: {sorted(stated)} are the figures of no one row of the targets table"
+        commands += [["jirl_sac_continuous.py", "--env-id", env.split(",")[0], *span.split()] for span in re.findall(r"`([^`]+)`", options)]
+    assert len(commands) == 7 and parse(commands) == [None] * 7
