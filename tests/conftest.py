@@ -56,6 +56,13 @@ def printed_regret(stdout: str) -> tuple[float, ...]:
     return regret
 
 
+def refusal(call, *args) -> str:
+    """The message of the ValueError that `call(*args)` must raise."""
+    with pytest.raises(ValueError) as raised:
+        call(*args)
+    return str(raised.value)
+
+
 def load_script(name: str):
     """Import ROOT/name.py under its own name (its `__main__` block does not run)."""
     if name in sys.modules:

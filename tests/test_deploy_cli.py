@@ -22,7 +22,7 @@ import pytest
 import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from conftest import CAR_TRAIN_FAST as FAST, ROOT, fill_the_disk_for, overflow_the_actor, overflow_the_mean
+from conftest import CAR_TRAIN_FAST as FAST, ROOT, fill_the_disk_for, overflow_the_actor, overflow_the_mean, refusal
 from test_stopping import LOST_HEADER, on_a_terminal
 
 jetracer = pytest.importorskip("deploy.jetracer")
@@ -578,12 +578,9 @@ def test_a_gamepad_the_user_may_not_read_says_what_gives_access(monkeypatch):
         return real_open(path, flags, *args)
 
     monkeypatch.setattr(io.os, "open", refused)
-    with pytest.raises(ValueError) as refusal:
-        io.Gamepad("/dev/input/js0")
-    assert str(refusal.value) == "cannot open gamepad '/dev/input/js0': Permission denied (on Linux: sudo usermod -aG input $USER, then log in again)"
-    with pytest.raises(ValueError) as refusal:
-        io.Gamepad("/dev/input/no_such_js")
-    assert str(refusal.value) == "cannot open gamepad '/dev/input/no_such_js': No such file or directory"
+    assert refusal(io.Gamepad, "/dev/input/js0") == ("cannot open gamepad '/dev/input/js0': Permission denied (on Linux: sudo usermod -aG input $USER,"
+                                                     " then log in again)")
+    assert refusal(io.Gamepad, "/dev/input/no_such_js") == "cannot open gamepad '/dev/input/no_such_js': No such file or directory"
 
 
 @pytest.mark.parametrize(

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import ROOT
+from conftest import ROOT, refusal
 from deploy import io
 from envs.car_interface import FRAME_SHAPE
 
@@ -172,19 +172,12 @@ def test_a_usb_camera_that_does_not_open_says_whether_linux_has_it_and_lets_the_
     nodes = {"/dev/video0": True, "/dev/video1": False}  # /dev/video2 is missing
     monkeypatch.setattr(io.os.path, "exists", lambda path: path in nodes)
     monkeypatch.setattr(io.os, "access", lambda path, mode: modes.append(mode) or nodes[path])
-    with pytest.raises(ValueError) as refusal:
-        io.open_camera("usb:2")
-    assert str(refusal.value) == "cannot open camera 2: there is no /dev/video2 (`ls /dev/video*` lists the cameras Linux sees)"
-    with pytest.raises(ValueError) as refusal:
-        io.open_camera("usb:1")
-    assert str(refusal.value) == "cannot open camera 1: the user may not open /dev/video1 (on Linux: sudo usermod -aG video $USER, then log in again)"
+    assert refusal(io.open_camera, "usb:2") == "cannot open camera 2: there is no /dev/video2 (`ls /dev/video*` lists the cameras Linux sees)"
+    assert refusal(io.open_camera, "usb:1") == ("cannot open camera 1: the user may not open /dev/video1 (on Linux: sudo usermod -aG video $USER,"
+                                                 " then log in again)")
     assert modes == [io.os.R_OK | io.os.W_OK], "V4L2 opens the device read-write"
-    with pytest.raises(ValueError) as refusal:
-        io.open_camera("usb:0")
-    assert str(refusal.value) == "cannot open camera 0"  # there and open to the user: nothing the OS can add
-    with pytest.raises(ValueError) as refusal:
-        io.open_camera("file:video2")
-    assert str(refusal.value) == "cannot open camera 'video2'", "a file is no device"
+    assert refusal(io.open_camera, "usb:0") == "cannot open camera 0"  # there and open to the user: nothing the OS can add
+    assert refusal(io.open_camera, "file:video2") == "cannot open camera 'video2'", "a file is no device"
     assert io.video_device_hint(2, platform="darwin") == "" and io.video_device_hint(2, platform="win32") == ""
 
 
