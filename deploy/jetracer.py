@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import dataclasses
 import errno
 import math
 import os
@@ -27,11 +28,14 @@ import statistics
 import sys
 import threading
 import time
+import typing
 from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Callable, Iterator, List, Literal, Optional, Tuple
 
 import numpy as np
+import tyro
+from typing_extensions import Annotated  # typing's has it from Python 3.9; the car runs 3.8
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the JIRL script and envs/
 
@@ -135,9 +139,26 @@ CAR_IGNORES = {
     "env_id": "the car is the env", "baseline": "the car's baseline is the lane follower, or a human on the gamepad",
     "regret_estimator": "the car's regret uses --baseline-reward-per-step", "baseline_eval_episodes": "measure it with `baseline`",
     "save_model": "the state is saved to --checkpoint", "eval_episodes": "drive the agent with `run`",
-    "capture_video": "not on the car", "guidance_fade_steps": "not on the car", "intervention_mode": "the gamepad's takeover intervenes",
+    "capture_video": "the car records no video", "guidance_fade_steps": "the car keeps every fabricated transition",
+    "intervention_mode": "the gamepad's takeover intervenes",
     "track": "the car logs to TensorBoard under --log-dir", "wandb_project_name": "no --track on the car", "wandb_entity": "no --track on the car",
 }  # fmt: skip
+
+
+def car_jirl_args() -> type:
+    """jirl.Args as `train` reads it under --jirl.: the same fields, but --help says which have no effect on the car, and why."""
+    hints = typing.get_type_hints(jirl.Args)  # the script's annotations are strings (its `from __future__ import annotations`)
+    car_help = {name: f"no effect on the car: {why}" for name, why in CAR_IGNORES.items()}
+    car_help["guidance_schedule"] = "geometric or linear on the car: guidance by time, as its laps are no episodes to compare"
+    fields = []
+    for option in dataclasses.fields(jirl.Args):
+        if option.name in car_help:
+            default = field(default=option.default) if option.default is not dataclasses.MISSING else field(default_factory=option.default_factory)
+            fields.append((option.name, Annotated[hints[option.name], tyro.conf.arg(help=car_help[option.name])], default))
+    return dataclasses.make_dataclass("CarJirlArgs", fields, bases=(jirl.Args,))
+
+
+CarJirlArgs = car_jirl_args()
 
 
 def car_jirl_defaults() -> jirl.Args:
@@ -146,7 +167,7 @@ def car_jirl_defaults() -> jirl.Args:
     The entropy coefficient stays tuned from the script's 0.2 (the report and the authors' code disagree: README);
     guidance by time (the car's laps are no episodes to compare with the baseline's), over half of --total-steps.
     """
-    return jirl.Args(env_id="JetRacer", hidden_size=64, batch_size=64, buffer_size=10_000, learning_starts=300,
+    return CarJirlArgs(env_id="JetRacer", hidden_size=64, batch_size=64, buffer_size=10_000, learning_starts=300,
                      gate_k=10, penalty_sigma2=0.01, guidance_schedule="geometric")  # fmt: skip
 
 
@@ -169,7 +190,7 @@ class Train(Common):
     """continue from --checkpoint"""
     baseline_reward_per_step: float = 1.075
     """the baseline's measured reward per step (from `baseline`), for the unpaired regret estimate"""
-    jirl: jirl.Args = field(default_factory=car_jirl_defaults)
+    jirl: CarJirlArgs = field(default_factory=car_jirl_defaults)
     """JIRL and SAC hyperparameters (see jirl_sac_continuous.py --help); on the car --jirl.guidance-steps
     defaults to half of --total-steps, not of --jirl.total-timesteps, and a --resume keeps the training's"""
 
@@ -976,8 +997,6 @@ class _NullController:
 
 
 def main(argv: Optional[List[str]] = None) -> None:
-    import tyro
-
     args = tyro.extras.subcommand_cli_from_dict({"run": Run, "baseline": Baseline, "train": Train}, prog="python -m deploy.jetracer", args=argv)
     jirl.OutputGuard.install()  # an ssh session that drops leaves the car's lines nowhere to go: not up as EIO (the session names its folder for them)
     {Run: run, Baseline: baseline, Train: train}[type(args)](args)

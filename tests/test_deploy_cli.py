@@ -1,6 +1,7 @@
 """deploy/jetracer.py: safety, and the run, baseline and train modes headless against the simulated car."""
 
 import copy
+import dataclasses
 import errno
 import math
 import os
@@ -1407,7 +1408,7 @@ def test_train_refuses_the_episode_based_schedule(tmp_path):
     [
         (["--jirl.seed", "7"], "--jirl.seed (use --seed)"),
         (["--jirl.total-timesteps", "500", "--jirl.guidance-fade-steps", "100"],
-         "--jirl.total-timesteps (use --total-steps); --jirl.guidance-fade-steps (not on the car)"),
+         "--jirl.total-timesteps (use --total-steps); --jirl.guidance-fade-steps (the car keeps every fabricated transition)"),
         (["--jirl.intervention-mode"], "--jirl.intervention-mode (the gamepad's takeover intervenes)"),
         (["--jirl.track", "--jirl.wandb-project-name", "car"],
          "--jirl.track (the car logs to TensorBoard under --log-dir); --jirl.wandb-project-name (no --track on the car)"),
@@ -1418,6 +1419,23 @@ def test_train_refuses_jirl_options_that_the_car_does_not_use(tmp_path, options,
         jetracer.main(["train", "--total-steps", "10", "--checkpoint", str(tmp_path / "t.pt"), "--log-dir", str(tmp_path), *options])
     assert not list(tmp_path.iterdir())  # nothing written, the car never armed
     assert set(jetracer.CAR_IGNORES) <= set(vars(jetracer.car_jirl_defaults()))  # every name is a --jirl option
+
+
+def test_trains_help_says_which_jirl_options_have_no_effect_on_the_car(capsys):
+    """`train --help` lists every field of jirl.Args under --jirl., each with the script's default; those the car
+    refuses (any value but the default) and the schedules it takes say so there, not only when the car refuses them."""
+    import jirl_sac_continuous as jirl
+
+    with pytest.raises(SystemExit):
+        jetracer.main(["train", "--help"])
+    text = " ".join(capsys.readouterr().out.replace("│", " ").split())
+    for name, why in jetracer.CAR_IGNORES.items():
+        assert re.search(rf"--jirl\.{name.replace('_', '-')}[ ,].{{0,60}} no effect on the car: {re.escape(why)} \(default:", text), name
+    assert "geometric or linear on the car: guidance by time, as its laps are no episodes to compare (default: geometric)" in text
+    assert "the gate's scaling factor C (Alg. 3)" in text, "the options the car uses keep the script's help"
+    script, car = dataclasses.fields(jirl.Args), dataclasses.fields(jetracer.CarJirlArgs)
+    assert [f.name for f in car] == [f.name for f in script]  # the same options, in the same order
+    assert dataclasses.asdict(jetracer.CarJirlArgs()) == dataclasses.asdict(jirl.Args()), "and the same defaults"
 
 
 @pytest.mark.parametrize("deterministic", [False, True])
