@@ -158,7 +158,10 @@ def car_jirl_args() -> type:
     return dataclasses.make_dataclass("CarJirlArgs", fields, bases=(jirl.Args,))
 
 
-CarJirlArgs = car_jirl_args()
+if typing.TYPE_CHECKING:  # to a type checker the car's options are the script's: a class made at run time is none it can read
+    CarJirlArgs = jirl.Args
+else:
+    CarJirlArgs = car_jirl_args()
 
 
 def car_jirl_defaults() -> jirl.Args:
@@ -168,7 +171,7 @@ def car_jirl_defaults() -> jirl.Args:
     guidance by time (the car's laps are no episodes to compare with the baseline's), over half of --total-steps.
     """
     return CarJirlArgs(env_id="JetRacer", hidden_size=64, batch_size=64, buffer_size=10_000, learning_starts=300,
-                     gate_k=10, penalty_sigma2=0.01, guidance_schedule="geometric")  # fmt: skip
+                       gate_k=10, penalty_sigma2=0.01, guidance_schedule="geometric")  # fmt: skip
 
 
 @dataclass
