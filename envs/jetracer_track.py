@@ -172,7 +172,9 @@ class JetRacerTrackEnv(gym.Env):
         yaw = heading + (self.np_random.uniform(-0.1, 0.1) if self.random_start else 0.0)
         self._state = np.array([x, y, yaw, 0.0, 0.0])
         self._s, self._progress, self._time = self.track.project(x, y)[0], 0.0, 0.0
-        self._laps, self._lap_times, self._lap_started = 0, [], None
+        self._laps = 0
+        self._lap_times: list[float] = []  # simulated s, each from line to line
+        self._lap_started: Optional[float] = None
         self._previous_action = np.array(START_ACTION, dtype=np.float32)
         if self.randomize_lighting:
             tint = self.np_random.uniform(0.65, 1.0) * self.np_random.uniform(0.9, 1.0, size=3)
