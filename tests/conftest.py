@@ -56,6 +56,11 @@ def printed_regret(stdout: str) -> tuple[float, ...]:
     return regret
 
 
+def table_cells(row: str) -> list[str]:
+    """The cells of a Markdown table's row, `| a | b |` -> ["a", "b"]."""
+    return [cell.strip() for cell in row.strip("|").split("|")]
+
+
 def refusal(call, *args) -> str:
     """The message of the ValueError that `call(*args)` must raise."""
     with pytest.raises(ValueError) as raised:

@@ -16,7 +16,7 @@ from cobs import cobs
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import ROOT, figures_stated
+from conftest import ROOT, figures_stated, table_cells
 from deploy import protocol as p
 from deploy.link import HostLink
 from deploy.mock_controller import MockController, PtyController, register_url_scheme
@@ -62,7 +62,7 @@ def test_the_protocol_document_states_the_codes_layouts_and_limits_in_code():
     documented = {}
     for section in ("## Messages, host to controller", "## Messages, controller to host"):
         for line in text.split(section, 1)[1].split("\n\n", 2)[1].splitlines()[2:]:  # the table, past its header
-            code, name, payload, _ = (cell.strip() for cell in line.strip("|").split("|"))
+            code, name, payload, _ = table_cells(line)
             fields = re.findall(r"(\w+) ([ui]\d+)", payload)
             assert fields or payload == "none", line
             documented[int(code, 16)] = (name, "<" + "".join(widths[width] for _, width in fields))

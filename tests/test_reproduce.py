@@ -12,7 +12,7 @@ import pytest
 from scipy import stats
 from torch.utils.tensorboard import SummaryWriter
 
-from conftest import ROOT
+from conftest import ROOT, table_cells
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import reproduce  # noqa: E402
@@ -53,7 +53,7 @@ def test_table_and_figures_on_synthetic_logs(tmp_path):
     results = reproduce.collect(tmp_path, ["Pendulum-v1"], list(reproduce.SCRIPTS), [1, 2, 3])
     text = reproduce.table(results)
     row = next(line for line in text.splitlines() if line.startswith("| Pendulum-v1") and "×" in line)
-    cells = [c.strip() for c in row.strip("|").split("|")]
+    cells = table_cells(row)
     # phase 0-50 %: mean 100, 95 % CI half-width t(0.975, 2) * sd / sqrt(3)
     half = stats.t.ppf(0.975, 2) * np.std([100, 120, 80], ddof=1) / math.sqrt(3)
     assert cells[1] == f"100 ± {half:,.0f}"
@@ -111,7 +111,7 @@ def test_a_report_of_two_seeds_leaves_out_unfinished_runs_and_missing_values(tmp
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # one value is reported without an interval, not with numpy's warnings
         text = reproduce.table(results)
-    rows = [[c.strip() for c in line.strip("|").split("|")] for line in text.splitlines() if line.startswith(("| Pendulum", "| Lunar"))]
+    rows = [table_cells(line) for line in text.splitlines() if line.startswith(("| Pendulum", "| Lunar"))]
     pendulum, lander = rows[0], rows[1]  # the per-step form
 
     def ci(values):  # mean ± t(0.975, n - 1) sd / sqrt(n), as the table rounds

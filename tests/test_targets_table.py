@@ -5,7 +5,7 @@ README's table of starting points repeats rows of it, and is checked against it 
 
 import re
 
-from conftest import ROOT
+from conftest import ROOT, table_cells
 
 NUMBER = re.compile(r"\d[\d,]*(?:\.\d+)?")  # signs and units aside: −259.3 reads 259.3, 1,342.7 reads 1342.7
 TABLE = "The issue's targets at a glance"
@@ -31,7 +31,7 @@ def test_every_figure_of_the_targets_table_is_stated_where_it_says():
     rows = [line for line in table.splitlines() if line.startswith("| ") and not line.startswith("| setting")]
     assert len(rows) == 14, "a row added or lost: count it here"
     for row in rows:
-        *cells, title = (cell.strip() for cell in row.strip("|").split("|"))
+        *cells, title = table_cells(row)
         assert title in sections, f"the row {cells[0]!r} names no subsection: {title!r}"
         missing = numbers(" ".join(cells)) - numbers(sections[title])
         assert not missing, f"the row {cells[0]!r} says {sorted(missing)}, which {title!r} does not"
@@ -56,8 +56,8 @@ def test_the_readmes_starting_points_are_rows_of_the_targets_table_and_parse():
     start = readme.index("| env |", readme.index("**Where to start.**"))
     table = readme[start : readme.index("\n\n", start)]
     targets = subsections((ROOT / "BENCHMARKS.md").read_text())[TABLE].split("\n\n- ", 1)[0]
-    target_rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in targets.splitlines() if line.startswith("| ") and not line.startswith("| setting")]
-    rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in table.splitlines()[2:]]
+    target_rows = [table_cells(line) for line in targets.splitlines() if line.startswith("| ") and not line.startswith("| setting")]
+    rows = [table_cells(line) for line in table.splitlines()[2:]]
     assert [row[0].split(",")[0] for row in rows] == ["Pendulum-v1"] * 3 + ["LunarLanderContinuous-v3"] * 2 + ["JetRacerTrack-v0", "Walker2DBulletEnv-v0", "your own env"]
     commands = []
     for env, options, seeds, returns, ratio in rows[:-1]:
