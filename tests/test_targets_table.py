@@ -61,10 +61,9 @@ def test_the_readmes_starting_points_are_rows_of_the_targets_table_and_parse():
     assert [row[0].split(",")[0] for row in rows] == ["Pendulum-v1"] * 3 + ["LunarLanderContinuous-v3"] * 2 + ["JetRacerTrack-v0", "Walker2DBulletEnv-v0", "your own env"]
     commands = []
     for env, options, seeds, returns, ratio in rows[:-1]:
-        same = [
-            setting for setting, episode_form, _, target_returns, *_ in target_rows
-            if f"{seeds} seeds" in setting and numbers(returns) <= numbers(target_returns) and NUMBER.findall(ratio) == NUMBER.findall(episode_form)[:1]
-        ]  # fmt: skip
-        assert same, f"{env}: {seeds} seeds, {returns}, {ratio} are the figures of no one row of the targets table"
+        assert any(
+            f"{seeds} seeds" in setting and numbers(returns) <= numbers(target_returns) and NUMBER.findall(ratio) == NUMBER.findall(episode_form)[:1]
+            for setting, episode_form, _, target_returns, *_ in target_rows
+        ), f"{env}: {seeds} seeds, {returns}, {ratio} are the figures of no one row of the targets table"
         commands += [["jirl_sac_continuous.py", "--env-id", env.split(",")[0], *span.split()] for span in re.findall(r"`([^`]+)`", options)]
     assert len(commands) == 7 and parse(commands) == [None] * 7
