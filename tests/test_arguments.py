@@ -6,13 +6,12 @@ import inspect
 import math
 import os
 import re
-import subprocess
-import sys
 import textwrap
 import typing
 
 import pytest
 
+import warm_python
 from conftest import ROOT, load_script
 
 SCRIPTS = ["sac_continuous", "jirl_sac_continuous", "ppo_il", "trpo_il"]
@@ -212,7 +211,7 @@ def test_deploy_train_refuses_a_checkpoint_that_is_no_file_path(tmp_path):
 def test_the_command_line_reports_and_writes_nothing(tmp_path, command, message):
     command = [str(ROOT / command[0]), *command[1:]] if command[0].endswith(".py") else command
     env = dict(os.environ, PYTHONPATH=str(ROOT), COLUMNS="300")  # one line of tyro's box holds the message
-    out = subprocess.run([sys.executable, *command], cwd=tmp_path, capture_output=True, text=True, timeout=60, env=env)
+    out = warm_python.run(command, cwd=tmp_path, timeout=60, env=env)
     assert out.returncode == 2, out.stderr
     assert message in out.stderr and "Traceback" not in out.stderr, out.stderr
     assert list(tmp_path.iterdir()) == [], "nothing is written before the arguments are checked"
@@ -223,7 +222,7 @@ def test_the_command_line_reports_and_writes_nothing(tmp_path, command, message)
 def test_a_controller_that_refuses_to_arm_is_a_one_line_error(tmp_path):
     """The mock controller accepts watchdog periods of 50-2000 ms; the host's own rule lets 30 through."""
     command = ["-m", "deploy.jetracer", "baseline", "--watchdog-ms", "30", "--log-dir", str(tmp_path / "runs")]
-    out = subprocess.run([sys.executable, *command], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    out = warm_python.run(command, cwd=ROOT, timeout=60)
     assert out.returncode != 0
     assert "did not arm with --watchdog-ms 30; it accepts 50-2000 ms" in out.stderr and "Traceback" not in out.stderr, out.stderr
     assert not (tmp_path / "runs").exists(), "no log of a session that never armed"

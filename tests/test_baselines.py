@@ -3,8 +3,6 @@
 import math
 import os
 import re
-import subprocess
-import sys
 
 import gymnasium as gym
 import numpy as np
@@ -12,6 +10,7 @@ import pytest
 
 from envs import BASELINES, EXPERTS, baselines, get_baseline, load_baseline, make_env, rollout
 
+import warm_python
 from conftest import ROOT, load_script, readme_section
 
 
@@ -169,15 +168,10 @@ def test_make_env_names_a_missing_package_not_an_unknown_id(monkeypatch):
 
 
 def test_cli_prints_the_baseline_figures():
-    out = subprocess.run(
-        [sys.executable, "-m", "envs.baselines", "--env-id", "Pendulum-v1", "--episodes", "2"],
-        cwd=ROOT, capture_output=True, text=True, check=True,
-    )
+    out = warm_python.run(["-m", "envs.baselines", "--env-id", "Pendulum-v1", "--episodes", "2"], cwd=ROOT, check=True)
     assert "return" in out.stdout and "reward per step" in out.stdout and "episode length  200.0" in out.stdout
     assert "RuntimeWarning" not in out.stderr
-    bad = subprocess.run(
-        [sys.executable, "-m", "envs.baselines", "--env-id", "CartPole-v1"], cwd=ROOT, capture_output=True, text=True
-    )
+    bad = warm_python.run(["-m", "envs.baselines", "--env-id", "CartPole-v1"], cwd=ROOT)
     assert bad.returncode == 2 and "no baseline for 'CartPole-v1'" in bad.stderr
 
 
@@ -201,7 +195,7 @@ def test_cli_refuses_what_it_cannot_measure(args, message, tmp_path):
         "def a_word(obs):\n    return 'left'\n"
     )
     env = {**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{ROOT}"}
-    out = subprocess.run([sys.executable, "-m", "envs.baselines", "--episodes", "20", *args], cwd=ROOT, capture_output=True, text=True, env=env)
+    out = warm_python.run(["-m", "envs.baselines", "--episodes", "20", *args], cwd=ROOT, env=env)
     assert out.returncode == 2 and message in out.stderr and "Traceback" not in out.stderr
     assert out.stderr.strip().splitlines()[-1].startswith("python -m envs.baselines: error: ")  # was "baselines.py: error:" or a bare "error:"
 

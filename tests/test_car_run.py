@@ -1,11 +1,11 @@
 """benchmarks/car_run.py: the figures of an on-car training, on a log whose answer is known and on a real one."""
 
-import subprocess
 import sys
 
 import pytest
 from torch.utils.tensorboard import SummaryWriter
 
+import warm_python
 from conftest import CAR_TRAIN_FAST, ROOT
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -66,7 +66,7 @@ def test_bad_arguments_are_one_line_errors(tmp_path, capsys):
 def test_it_reads_what_a_real_training_logs(tmp_path):
     """The tags it reads are the ones `deploy.jetracer train` writes (laps take longer than a test)."""
     args = ["train", "--total-steps", "60", "--jirl.log-every", "20", "--checkpoint", str(tmp_path / "state.pt"), "--log-dir", str(tmp_path / "runs"), *CAR_TRAIN_FAST]
-    out = subprocess.run([sys.executable, "-m", "deploy.jetracer", *args], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    out = warm_python.run(["-m", "deploy.jetracer", *args], cwd=ROOT, timeout=120)
     assert out.returncode == 0, out.stderr
     (run_dir,) = (tmp_path / "runs").iterdir()
     figures = car_run.summarize(car_run.read(run_dir), [0, 60], control_at=1)

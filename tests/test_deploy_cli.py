@@ -23,6 +23,7 @@ import pytest
 import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+import warm_python
 from conftest import CAR_TRAIN_FAST as FAST, ROOT, fill_the_disk_for, overflow_the_actor, overflow_the_mean, refusal
 from test_stopping import LOST_HEADER, on_a_terminal
 
@@ -142,7 +143,7 @@ def test_train_writes_a_checkpoint_and_resumes_from_it(tmp_path):
     state = tmp_path / "train.pt"
     common = ["--train-every", "40", "--gradient-steps", "5", "--checkpoint", str(state), "--log-dir", str(tmp_path), *FAST]
     args = ["train", "--total-steps", "100", *common]
-    out = subprocess.run([sys.executable, "-m", "deploy.jetracer", *args], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    out = warm_python.run(["-m", "deploy.jetracer", *args], cwd=ROOT, timeout=120)
     assert out.returncode == 0, out.stderr
     assert state.exists() and (tmp_path / "train.pt.actor.cleanrl_model").exists()
     with pytest.raises(SystemExit, match=f"is a jirl-car-training-v2 file, not a jirl-sac-checkpoint-v2 checkpoint; `train` keeps the policy of this training in {state}.actor.cleanrl_model$"):
@@ -151,22 +152,22 @@ def test_train_writes_a_checkpoint_and_resumes_from_it(tmp_path):
     assert saved["counters"]["step"] == 100 and saved["counters"]["updates"] == 15  # pauses at 40 and 80, and after step 100
     size = len(saved["buffer"]["obs"])
     assert size == 100 - 1 + saved["counters"]["fabricated_transitions"]  # the last step's transition is not complete
-    out = subprocess.run([sys.executable, "-m", "deploy.jetracer", "train", "--total-steps", "140", "--resume", *common],
-                         cwd=ROOT, capture_output=True, text=True, timeout=120)  # fmt: skip
+    out = warm_python.run(["-m", "deploy.jetracer", "train", "--total-steps", "140", "--resume", *common],
+                          cwd=ROOT, timeout=120)  # fmt: skip
     assert out.returncode == 0, out.stderr
     assert "resumed at step 100" in out.stdout
     resumed = torch.load(state, weights_only=True)
     assert resumed["counters"]["step"] == 140 and len(resumed["buffer"]["obs"]) > size
     assert resumed["counters"]["updates"] == 25  # the pause at 120 and the one after step 140; none again at 100
     written = state.read_bytes()
-    out = subprocess.run([sys.executable, "-m", "deploy.jetracer", "train", "--total-steps", "140", "--resume", *common],
-                         cwd=ROOT, capture_output=True, text=True, timeout=120)  # fmt: skip
+    out = warm_python.run(["-m", "deploy.jetracer", "train", "--total-steps", "140", "--resume", *common],
+                          cwd=ROOT, timeout=120)  # fmt: skip
     assert out.returncode != 0 and out.stderr.strip().splitlines()[-1] == (
         f"train: error: {state} is at step 140, and --total-steps 140 counts from the start of the training: pass more to continue it")
     assert state.read_bytes() == written and len(list(tmp_path.glob("train__*"))) == 2  # not armed: no third session logged
     (tmp_path / "broken.pt").write_bytes(b"not a checkpoint")
-    out = subprocess.run([sys.executable, "-m", "deploy.jetracer", "train", "--resume", "--checkpoint", str(tmp_path / "broken.pt")],
-                         cwd=ROOT, capture_output=True, text=True, timeout=60)  # fmt: skip
+    out = warm_python.run(["-m", "deploy.jetracer", "train", "--resume", "--checkpoint", str(tmp_path / "broken.pt")],
+                          cwd=ROOT, timeout=60)  # fmt: skip
     assert out.returncode != 0 and "not a readable training state" in out.stderr
     assert "weights_only" not in out.stderr and "Traceback" not in out.stderr, "one line, without torch's advice to load it unsafely"
 
@@ -428,11 +429,11 @@ def test_a_twin_that_leaves_the_lane_alone_is_put_back_at_rest(tmp_path, monkeyp
 
 
 def test_run_drives_a_checkpoint_trained_by_the_jirl_script(tmp_path):
-    out = subprocess.run(
-        [sys.executable, str(ROOT / "jirl_sac_continuous.py"), "--env-id", "JetRacerTrack-v0", "--total-timesteps", "150",
+    out = warm_python.run(
+        [str(ROOT / "jirl_sac_continuous.py"), "--env-id", "JetRacerTrack-v0", "--total-timesteps", "150",
          "--learning-starts", "100", "--hidden-size", "16", "--batch-size", "16", "--save-model", "--eval-episodes", "1",
          "--baseline-eval-episodes", "1"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+        cwd=tmp_path, timeout=300,
     )  # fmt: skip
     assert out.returncode == 0, out.stderr
     (checkpoint,) = (tmp_path / "runs").glob("*/*.cleanrl_model")
@@ -479,10 +480,10 @@ def test_deploy_and_what_it_imports_run_on_python_3_8(tmp_path):
 
 
 def test_background_learner_keeps_the_gradient_step_ratio(tmp_path):
-    out = subprocess.run(
-        [sys.executable, "-m", "deploy.jetracer", "train", "--total-steps", "100", "--train-every", "40", "--gradient-steps", "10",
+    out = warm_python.run(
+        ["-m", "deploy.jetracer", "train", "--total-steps", "100", "--train-every", "40", "--gradient-steps", "10",
          "--learner", "background", "--checkpoint", str(tmp_path / "bg.pt"), "--log-dir", str(tmp_path), *FAST],
-        cwd=ROOT, capture_output=True, text=True, timeout=120,
+        cwd=ROOT, timeout=120,
     )  # fmt: skip
     assert out.returncode == 0, out.stderr
     assert ", updates 25," in out.stdout  # 100 steps x 10 / 40, trained while driving
@@ -1083,8 +1084,8 @@ def test_a_failing_background_learner_stops_the_car_and_keeps_the_state(tmp_path
 
 def test_train_checks_its_checkpoint_before_the_car_is_armed(tmp_path):
     def train(*extra):
-        return subprocess.run([sys.executable, "-m", "deploy.jetracer", "train", "--total-steps", "50", "--log-dir", str(tmp_path / "logs"),
-                               *FAST, *extra], cwd=ROOT, capture_output=True, text=True, timeout=120)  # fmt: skip
+        return warm_python.run(["-m", "deploy.jetracer", "train", "--total-steps", "50", "--log-dir", str(tmp_path / "logs"),
+                               *FAST, *extra], cwd=ROOT, timeout=120)  # fmt: skip
 
     (tmp_path / "afile").write_text("")
     out = train("--checkpoint", str(tmp_path / "afile" / "train.pt"))  # its directory cannot be made
@@ -1398,7 +1399,7 @@ def test_a_run_started_with_nohup_drives_on_after_a_hang_up(tmp_path):
 def test_train_refuses_the_episode_based_schedule(tmp_path):
     assert jetracer.car_jirl_defaults().guidance_schedule == "geometric"
     args = ["train", "--total-steps", "10", "--jirl.guidance-schedule", "earned", "--checkpoint", str(tmp_path / "t.pt"), "--log-dir", str(tmp_path)]
-    out = subprocess.run([sys.executable, "-m", "deploy.jetracer", *args], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    out = warm_python.run(["-m", "deploy.jetracer", *args], cwd=ROOT, timeout=60)
     assert out.returncode != 0 and "geometric or linear on the car" in out.stderr and "Traceback" not in out.stderr
     assert not (tmp_path / "t.pt").exists()
 
@@ -1512,7 +1513,7 @@ def test_missing_hardware_is_a_one_line_error_before_the_car_is_armed(tmp_path, 
         cv2.VideoWriter(str(tmp_path / "empty.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 20, (FRAME_SHAPE[1], FRAME_SHAPE[0])).release()
     option, message = [part.format(tmp=tmp_path) for part in option], message.format(tmp=tmp_path)
     args = ["baseline", "--steps", "5", "--log-dir", str(tmp_path / "runs"), *option]
-    out = subprocess.run([sys.executable, "-m", "deploy.jetracer", *args], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    out = warm_python.run(["-m", "deploy.jetracer", *args], cwd=ROOT, timeout=60)
     assert out.returncode != 0 and message in out.stderr.strip().splitlines()[-1], out.stderr  # above it, pybullet's banner
     assert "Traceback" not in out.stderr, out.stderr
     assert not (tmp_path / "runs").exists()
@@ -1680,8 +1681,8 @@ def test_a_training_in_progress_holds_its_checkpoint_against_a_second_one(tmp_pa
     state = tmp_path / "train.pt"
 
     def train(*extra, steps):
-        return subprocess.run([sys.executable, "-m", "deploy.jetracer", "train", "--total-steps", str(steps), "--checkpoint", str(state),
-                               "--log-dir", str(tmp_path / "logs"), *FAST, *extra], cwd=ROOT, capture_output=True, text=True, timeout=120)  # fmt: skip
+        return warm_python.run(["-m", "deploy.jetracer", "train", "--total-steps", str(steps), "--checkpoint", str(state),
+                               "--log-dir", str(tmp_path / "logs"), *FAST, *extra], cwd=ROOT, timeout=120)  # fmt: skip
 
     assert train(steps=20).returncode == 0
     saved = state.read_bytes()
@@ -1697,8 +1698,8 @@ def test_a_training_in_progress_holds_its_checkpoint_against_a_second_one(tmp_pa
     assert state.read_bytes() == saved and len(list((tmp_path / "logs").iterdir())) == 1  # the car never armed for the refused ones
     fresh = tmp_path / "fresh.pt"  # no state yet: three fresh trainings started together on one checkpoint
     with jetracer.holding(str(fresh)):
-        out = subprocess.run([sys.executable, "-m", "deploy.jetracer", "train", "--checkpoint", str(fresh), "--log-dir", str(tmp_path / "logs")],
-                             cwd=ROOT, capture_output=True, text=True, timeout=120)  # fmt: skip
+        out = warm_python.run(["-m", "deploy.jetracer", "train", "--checkpoint", str(fresh), "--log-dir", str(tmp_path / "logs")],
+                              cwd=ROOT, timeout=120)  # fmt: skip
         assert "another training is using" in out.stderr, out.stderr
         # the refused run leaves the holder's lock file: removed, the third would lock a new file beside it and run too
         with pytest.raises(SystemExit, match="another training is using"):
@@ -1800,7 +1801,7 @@ def test_a_save_writes_through_a_temporary_file_of_its_own(tmp_path):
 def test_a_log_dir_that_cannot_be_made_is_a_one_line_error_before_the_car_is_armed(tmp_path, log_dir):
     (tmp_path / "afile").write_text("a user's file")
     args = ["baseline", "--steps", "5", "--log-dir", str(tmp_path / log_dir)]
-    out = subprocess.run([sys.executable, "-m", "deploy.jetracer", *args], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    out = warm_python.run(["-m", "deploy.jetracer", *args], cwd=ROOT, timeout=60)
     assert out.returncode != 0 and "Traceback" not in out.stderr, out.stderr
     assert out.stderr.strip().splitlines()[-1] == f"baseline: error: cannot log to --log-dir {tmp_path / log_dir}: {tmp_path / 'afile'} is not a directory"
     assert (tmp_path / "afile").read_text() == "a user's file"
@@ -1831,8 +1832,8 @@ def test_a_log_dir_lost_as_the_car_arms_stops_the_car_with_one_line(tmp_path, mo
 
 def test_a_training_whose_car_never_armed_leaves_no_state_that_blocks_the_rerun(tmp_path):
     def train(*extra, steps=20):
-        return subprocess.run([sys.executable, "-m", "deploy.jetracer", "train", "--total-steps", str(steps), "--checkpoint", str(state),
-                               "--log-dir", str(tmp_path / "logs"), *FAST, *extra], cwd=ROOT, capture_output=True, text=True, timeout=120)  # fmt: skip
+        return warm_python.run(["-m", "deploy.jetracer", "train", "--total-steps", str(steps), "--checkpoint", str(state),
+                               "--log-dir", str(tmp_path / "logs"), *FAST, *extra], cwd=ROOT, timeout=120)  # fmt: skip
 
     state = tmp_path / "train.pt"
     out = train("--resume")  # nothing to resume yet

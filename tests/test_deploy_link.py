@@ -2,8 +2,6 @@
 
 import queue
 import re
-import subprocess
-import sys
 import threading
 import time
 from collections import deque
@@ -16,6 +14,7 @@ from cobs import cobs
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import warm_python
 from conftest import ROOT, figures_stated, table_cells
 from deploy import protocol as p
 from deploy.link import HostLink
@@ -718,8 +717,8 @@ def test_a_second_host_cannot_open_the_port_a_link_holds(tmp_path):
         with pytest.raises(OSError, match=f"Could not exclusively lock port {pty.path}"):
             HostLink(pty.path, send_hz=100, command_timeout=0.05).start()
         # nor can the CLI: one line, before anything is armed or logged
-        out = subprocess.run([sys.executable, "-m", "deploy.jetracer", "baseline", "--steps", "5", "--port", pty.path, "--log-dir", str(tmp_path / "runs")],
-                             cwd=ROOT, capture_output=True, text=True, timeout=60)  # fmt: skip
+        out = warm_python.run(["-m", "deploy.jetracer", "baseline", "--steps", "5", "--port", pty.path, "--log-dir", str(tmp_path / "runs")],
+                              cwd=ROOT, timeout=60)  # fmt: skip
         assert out.returncode != 0 and "Traceback" not in out.stderr, out.stderr
         last = out.stderr.strip().splitlines()[-1]  # the errno differs between systems (EAGAIN, EWOULDBLOCK)
         assert last.startswith("baseline: error: cannot open the motor controller: [Errno ") and f"Could not exclusively lock port {pty.path}" in last

@@ -18,13 +18,14 @@ import torch
 from gymnasium.envs.classic_control.pendulum import PendulumEnv
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+import warm_python
 from conftest import OTHER_PENDULUM_SPACES, ROOT, fill_the_disk_for, load_script, overflow_the_actor, overflow_the_policy_mean, printed_regret, readme_section, small_checkpoint
 
 TINY = ["--hidden-size", "32", "--batch-size", "32", "--log-every", "50"]
 
 
 def run_script(script: Path, args: list[str], cwd: Path, env: dict | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(script), *args], cwd=cwd, capture_output=True, text=True, env=env)
+    return warm_python.run([str(script), *args], cwd=cwd, env=env)
 
 
 def readme_keys() -> set[str]:
@@ -546,7 +547,7 @@ def test_the_readmes_saved_policy_snippet_runs(tmp_path, sac):
     small_checkpoint(sac, path)
     code = code.replace("runs/RUN_NAME/jirl_sac_continuous.cleanrl_model", str(path)).replace('render_mode="human"', "render_mode=None")
     assert str(path) in code and "render_mode=None" in code, "the snippet changed: update this test"
-    out = subprocess.run([sys.executable, "-c", code + "print(obs.shape, float(reward))"], cwd=ROOT, capture_output=True, text=True)
+    out = warm_python.run(["-c", code + "print(obs.shape, float(reward))"], cwd=ROOT)
     assert out.returncode == 0, out.stderr
     shape, reward = out.stdout.rsplit(")", 1)
     assert shape == "(3," and -16.3 < float(reward) <= 0.0  # a Pendulum step's reward

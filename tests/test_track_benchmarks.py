@@ -10,6 +10,7 @@ import sys
 import numpy as np
 import pytest
 
+import warm_python
 from conftest import ROOT, figures_stated, small_checkpoint
 from envs.car_interface import MASK_SHAPE, lane_mask
 from envs.jetracer_track import JetRacerTrackEnv
@@ -210,9 +211,7 @@ def test_track_speed_divides_the_steps_by_each_clock_and_restarts_the_baseline_w
 
 
 def test_track_speed_drives_the_real_track():
-    import subprocess
-
-    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "track_speed.py"), "--steps", "30", "--repeats", "2"],
-                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    done = warm_python.run([str(ROOT / "benchmarks" / "track_speed.py"), "--steps", "30", "--repeats", "2"],
+                           timeout=120)  # fmt: skip
     assert done.returncode == 0, done.stderr
     assert re.fullmatch(r"JetRacerTrack-v0, lane-follower actions, 30 steps x 2 \(medians\): [1-9]\d* steps per CPU-second, [1-9]\d* steps per wall-clock second\n", done.stdout)

@@ -8,7 +8,6 @@ import re
 import shutil
 import struct
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +15,7 @@ import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 from wandb.proto import wandb_internal_pb2
 
+import warm_python
 from conftest import ROOT
 from test_sac_script import SHORT_RUNS
 
@@ -33,7 +33,7 @@ def run_copied(script: str, python_args: list[str], cwd: Path, **env: str) -> su
     """`python *python_args` in cwd and tracked_env(cwd, **env), with the script copied into cwd first
     (W&B saves the code of a program under its working directory)."""
     shutil.copy(ROOT / f"{script}.py", cwd)
-    return subprocess.run([sys.executable, *python_args], cwd=cwd, capture_output=True, text=True, env=tracked_env(cwd, **env), timeout=300)
+    return warm_python.run(list(python_args), cwd=cwd, env=tracked_env(cwd, **env), timeout=300)
 
 
 def run_tracked(script: str, args: list[str], cwd: Path, **env: str) -> subprocess.CompletedProcess:

@@ -2,8 +2,6 @@
 
 import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -11,6 +9,7 @@ import numpy as np
 import pytest
 from gymnasium.envs.classic_control.pendulum import PendulumEnv
 
+import warm_python
 from conftest import ROOT, load_script
 from test_sac_script import run_script, scalars
 
@@ -524,8 +523,8 @@ def test_jirl_names_every_flag_an_endless_baseline_episode_needs(tmp_path):
         "gym.register('EndlessPendulum-v0', entry_point='gymnasium.envs.classic_control.pendulum:PendulumEnv')  # no time limit\n"
     )  # fmt: skip
     args = ["--env-id", "endless:EndlessPendulum-v0", "--baseline", "envs.pendulum:pendulum_swing_up", "--baseline-eval-episodes", "1"]
-    out = subprocess.run([sys.executable, str(ROOT / "jirl_sac_continuous.py"), *args], cwd=tmp_path, capture_output=True, text=True,
-                         timeout=120)  # a hang, as before the limit, fails here  # fmt: skip
+    out = warm_python.run([str(ROOT / "jirl_sac_continuous.py"), *args], cwd=tmp_path,
+                          timeout=120)  # a hang, as before the limit, fails here  # fmt: skip
     assert out.returncode != 0 and len(out.stderr.strip().splitlines()) == 1, out.stderr
     assert out.stderr.strip().endswith("did not end within 100,000 steps; give the env a time limit (max_episode_steps)"
                                        " or use --regret-estimator off and --guidance-schedule geometric"), out.stderr

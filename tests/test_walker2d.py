@@ -12,6 +12,7 @@ import torch
 from envs import get_baseline, make_env, rollout
 from envs.walker2d import WEIGHTS, Walker2DBaseline, export, load_policy, main
 
+import warm_python
 from conftest import ROOT, fill_the_disk_for, load_script, small_checkpoint
 
 # BENCHMARKS.md: the shipped baseline's mean return over 10 episodes (seeds 0-9, min 1494.9, max 1566.2)
@@ -143,8 +144,8 @@ def test_export_round_trip_from_a_sac_checkpoint(tmp_path):
     checkpoint = tmp_path / "model.cleanrl_model"
     actor = small_checkpoint(load_script("sac_continuous"), checkpoint, "Walker2DBulletEnv-v0", total_timesteps=123)
     out = tmp_path / "weights.pt"
-    result = subprocess.run([sys.executable, "-m", "envs.walker2d", "export", str(checkpoint), "--out", str(out), "--command", "cmd", "--commit", "abc1234"],
-                            cwd=ROOT, capture_output=True, text=True)  # fmt: skip
+    result = warm_python.run(["-m", "envs.walker2d", "export", str(checkpoint), "--out", str(out), "--command", "cmd", "--commit", "abc1234"],
+                             cwd=ROOT)  # fmt: skip
     assert result.returncode == 0, result.stderr
     baseline = Walker2DBaseline(out)
     assert baseline.metadata == {"seed": 1, "total_timesteps": 123, "command": "cmd", "commit": "abc1234"}
@@ -173,8 +174,8 @@ def test_export_round_trip_from_a_sac_checkpoint(tmp_path):
                           (resized, "the actor's weights do not fit the stated sizes: Error(s) in loading state_dict for MeanPolicy: size mismatch"),
                           (valued, "is a damaged sac_continuous.py checkpoint: its args is ['--seed', '1']\n"),
                           (unfinite, "is a damaged sac_continuous.py checkpoint: its actor holds a NaN or infinite weight\n")):  # fmt: skip
-        result = subprocess.run([sys.executable, "-m", "envs.walker2d", "export", str(path), "--out", str(tmp_path / "bad.pt")],
-                                cwd=ROOT, capture_output=True, text=True)  # fmt: skip
+        result = warm_python.run(["-m", "envs.walker2d", "export", str(path), "--out", str(tmp_path / "bad.pt")],
+                                 cwd=ROOT)  # fmt: skip
         assert result.returncode == 2 and message in result.stderr and "Traceback" not in result.stderr, result.stderr
         assert len(result.stderr.splitlines()) == 1, result.stderr
     assert not (tmp_path / "bad.pt").exists() and not (tmp_path / "bad.pt.tmp").exists()
