@@ -138,8 +138,8 @@ def run(argv: list[str], cwd: str | Path | None = None, env: dict | None = None,
             process.kill()
             process.join()
 
-        def read(name: str) -> str:
-            with open(name, encoding="utf-8", errors="replace") as file:
+        def read(name: str) -> str:  # as strict as subprocess.run's text=True: output that is not UTF-8 fails the test
+            with open(name, encoding="utf-8") as file:
                 return file.read()
 
         stdout, stderr = read(out), read(err)
