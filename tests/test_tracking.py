@@ -33,7 +33,7 @@ def run_copied(script: str, python_args: list[str], cwd: Path, **env: str) -> su
     """`python *python_args` in cwd and tracked_env(cwd, **env), with the script copied into cwd first
     (W&B saves the code of a program under its working directory)."""
     shutil.copy(ROOT / f"{script}.py", cwd)
-    return warm_python.run(list(python_args), cwd=cwd, env=tracked_env(cwd, **env), timeout=300)
+    return warm_python.run(python_args, cwd=cwd, env=tracked_env(cwd, **env), timeout=300)
 
 
 def run_tracked(script: str, args: list[str], cwd: Path, **env: str) -> subprocess.CompletedProcess:
