@@ -200,7 +200,7 @@ class SimWorld:
         """Every lap completed since the world was made (simulated s), across the resets after lane departures."""
         return self._laps_before_reset + self.info["lap_times"]
 
-    def read(self) -> Frame:
+    def read(self) -> Tuple[np.ndarray, float]:
         """The car's camera frame now, (112, 112, 3) uint8 BGR as OpenCV gives a real camera's, and the time it was taken."""
         return self.env.camera_frame_bgr(), time.monotonic()
 

@@ -31,8 +31,9 @@ import time
 import typing
 from collections import deque
 from dataclasses import dataclass, field, replace
-from typing import Callable, Iterator, List, Literal, Optional, Tuple
+from typing import Any, Callable, Dict, Iterator, List, Literal, Optional, Tuple, Union
 
+import gymnasium as gym
 import numpy as np
 import tyro
 from typing_extensions import Annotated  # typing's has it from Python 3.9; the car runs 3.8
@@ -41,15 +42,15 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__)))) 
 
 import jirl_sac_continuous as jirl  # noqa: E402
 from deploy import protocol as p  # noqa: E402
-from deploy.io import CameraFailed, Gamepad, GamepadLost, SimWorld, open_camera  # noqa: E402
+from deploy.io import CameraFailed, Gamepad, GamepadLost, OpenCVCamera, SimWorld, open_camera  # noqa: E402
 from deploy.link import HostLink  # noqa: E402
 from envs.car_interface import OBS_SIZE, START_ACTION, ActionMapping, action_to_commands, preprocess  # noqa: E402
 from envs.lane_follower import LaneFollower  # noqa: E402
 
 TRAIN_STATE_FORMAT = "jirl-car-training-v2"  # v2: the agent's twin critics as one ensemble
 BUFFER_FIELDS = ("obs", "next_obs", "actions", "rewards", "terminations")  # the replay rows a training state keeps
-TRAIN_COUNTERS = {"step": 0, "fabricated_transitions": 0, "control_switches": 0, "baseline_regret_per_step": 0.0,
-                  "paired_regret_per_step": 0.0, "updates": 0}  # fmt: skip
+TRAIN_COUNTERS: Dict[str, Any] = {"step": 0, "fabricated_transitions": 0, "control_switches": 0, "baseline_regret_per_step": 0.0,
+                                  "paired_regret_per_step": 0.0, "updates": 0}  # fmt: skip
 SENDS_PER_PERIOD = 2.5  # the link sends this many frames per control period (DRIVE or STOP, feeding the watchdog)
 CAMERA_LOST_S = 2.0  # stale frames for this long end the run: the camera is gone (or a recorded video ended)
 OVERFLOW_ROWS = 256  # the latest stored observations a pause runs the actor on before saving (0.2 ms at 64 units: BENCHMARKS)
@@ -260,16 +261,20 @@ def claim_log_dir(log_dir: str, name: str) -> str:
             path = os.path.join(log_dir, f"{name}_{n}")
 
 
-def stop_signals() -> List[int]:
+def stop_signals() -> List[signal.Signals]:
     """The signals that stop the car: Ctrl-C, SIGTERM, and SIGHUP (the ssh session to the car dropped, or
     its terminal closed), unless the run ignores it (started with nohup: it goes on after a hang-up)."""
-    hangup = getattr(signal, "SIGHUP", None)  # none on Windows
-    keep_on = hangup is None or signal.getsignal(hangup) is signal.SIG_IGN
-    return [signal.SIGINT, signal.SIGTERM] + ([] if keep_on else [hangup])
+    hangup: Optional[signal.Signals] = getattr(signal, "SIGHUP", None)  # none on Windows
+    if hangup is None or signal.getsignal(hangup) is signal.SIG_IGN:
+        return [signal.SIGINT, signal.SIGTERM]
+    return [signal.SIGINT, signal.SIGTERM, hangup]
 
 
 class CarSession:
     """The link, the camera (and the simulator behind both in sim-in-the-loop), safety, timing and logs."""
+
+    camera: Union[OpenCVCamera, SimWorld]  # these two are set once the session is open; close() also
+    writer: jirl.CheckedWriter  # closes a session whose opening failed before them
 
     def __init__(self, args: Common, mode: str) -> None:
         self.args, self.mode, self.period = args, mode, 1.0 / args.control_hz
@@ -280,7 +285,8 @@ class CarSession:
         self._previous_handlers = {sig: signal.signal(sig, self._on_signal) for sig in stop_signals()}
         self.mapping = ActionMapping(min_throttle=args.min_throttle, max_throttle=args.max_throttle)
         self.safety = SafetyFilter(self.mapping, args.max_steering_rate, self.period)
-        self.world = self.camera = self.gamepad = self.writer = None
+        self.world: Optional[SimWorld] = None
+        self.gamepad: Optional[Gamepad] = None
         try:
             self.link = HostLink(args.port, send_hz=SENDS_PER_PERIOD * args.control_hz, command_timeout=2.0 * self.period,
                                  watchdog_ms=args.watchdog_ms, throttle_cap=args.max_throttle).start()  # fmt: skip
@@ -461,14 +467,16 @@ class CarSession:
 
     def close(self) -> None:
         self.link.close()  # STOP, then ESTOP
-        if hasattr(self.camera, "close") and self.camera is not self.world:
-            self.camera.close()
+        camera = getattr(self, "camera", None)
+        if camera is not None and camera is not self.world and hasattr(camera, "close"):  # the tests' stand-ins may have none
+            camera.close()
         if self.world is not None:
             self.world.close()
         if self.gamepad is not None:
             self.gamepad.close()
-        if self.writer is not None:
-            self.writer.close()
+        writer = getattr(self, "writer", None)
+        if writer is not None:
+            writer.close()
         self._restore_signals()
         if self.estop_unsent:
             self._say_estop_unsent()
@@ -478,12 +486,10 @@ class CarSession:
             signal.signal(sig, handler)
 
 
-class CarSpaces:
-    """Observation and action spaces of the car, for checking a checkpoint against them."""
+class CarSpaces(gym.Env):
+    """The car's observation and action spaces, for checking a checkpoint against them; it has no step()."""
 
     def __init__(self) -> None:
-        import gymnasium as gym
-
         self.observation_space = gym.spaces.Box(-1.0, 1.0, shape=(OBS_SIZE,), dtype=np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
 
@@ -805,7 +811,8 @@ def train_holding(args: Train) -> dict:
     rl_control: deque = deque(maxlen=hp.rl_control_window)
     shadow = None  # sim-in-the-loop: the baseline drives a twin car from the same poses, for the paired regret
     if session.world is not None:
-        shadow = SimWorld(_NullController(), seed=args.seed)
+        car_world, shadow_controller = session.world, _NullController()
+        shadow = SimWorld(shadow_controller, seed=args.seed)
         shadow_follower, shadow_previous = LaneFollower(), np.array(START_ACTION, dtype=np.float32)
         shadow_safety = SafetyFilter(session.mapping, args.max_steering_rate, session.period)  # the car's filter acts on the baseline too
     # a real car has no twin to pair with: it logs no paired regret rather than a paired regret of 0
@@ -910,12 +917,13 @@ def train_holding(args: Train) -> dict:
             twin_reward = None
             if shadow is not None:  # the baseline's own step from the same start, paired by index
                 if off_track:  # the car was put back: the twin starts from its pose, wheel and previous action
-                    shadow.env.reset(seed=session.world.seed + session.world.resets)
+                    shadow.env.reset(seed=car_world.seed + car_world.resets)
                     shadow_follower.reset()
                     shadow_previous, shadow_safety.steering = np.array(START_ACTION, dtype=np.float32), car_steering
                 shadow_action = shadow_follower(preprocess(shadow.read()[0], shadow_previous))
                 shadow_commands = shadow_safety(shadow_action)
-                shadow.controller.set(*shadow_commands)
+                assert shadow_commands is not None  # None is for a NaN action; the lane follower's are finite
+                shadow_controller.set(*shadow_commands)
                 shadow.tick()
                 twin_reward = car_reward(shadow_commands[1], shadow.off_track, session.mapping)
                 shadow_previous = np.clip(shadow_action, -1.0, 1.0)
@@ -1002,7 +1010,8 @@ class _NullController:
 def main(argv: Optional[List[str]] = None) -> None:
     args = tyro.extras.subcommand_cli_from_dict({"run": Run, "baseline": Baseline, "train": Train}, prog="python -m deploy.jetracer", args=argv)
     jirl.OutputGuard.install()  # an ssh session that drops leaves the car's lines nowhere to go: not up as EIO (the session names its folder for them)
-    {Run: run, Baseline: baseline, Train: train}[type(args)](args)
+    modes: Dict[type, Callable[[Any], object]] = {Run: run, Baseline: baseline, Train: train}
+    modes[type(args)](args)
 
 
 if __name__ == "__main__":

@@ -80,7 +80,7 @@ class HostLink:
         self.url, self.send_period, self.command_timeout = url, 1.0 / send_hz, command_timeout
         self.watchdog_ms, self.throttle_cap, self.backoff = watchdog_ms, throttle_cap, backoff
         self._opener, self._clock = opener, clock
-        self._port: Optional[Any] = None  # what the opener returned: a pyserial port, or the tests' stand-in
+        self._port: Any = None  # what the opener returned: a pyserial port, or the tests' stand-in; None while closed
         self._lock = threading.RLock()  # guards the port and the sequence number
         self._seq = 0
         self._command: Optional[Tuple[float, float, float]] = None  # steering, throttle, time set

@@ -76,6 +76,9 @@ def get_baseline(env_id: str, spec: str = "") -> Baseline:
 
 def rollout(env: gym.Env, policy: Baseline, seed: int) -> np.ndarray:
     """Run one episode from ``env.reset(seed=seed)``; return the reward of every step."""
+    if env.action_space.shape is None:  # a Dict or Tuple space: no count to check the baseline's actions against
+        raise ValueError(f"cannot measure a baseline on the action space {env.action_space}: it has no fixed shape")
+    size = int(np.prod(env.action_space.shape))
     if hasattr(policy, "reset"):
         policy.reset()
     obs, _ = env.reset(seed=seed)
@@ -88,8 +91,8 @@ def rollout(env: gym.Env, policy: Baseline, seed: int) -> np.ndarray:
             values = np.asarray(action, dtype=np.float64)
         except (TypeError, ValueError):  # not numbers at all: the same one-line error as a wrong count
             values = np.array([np.nan])
-        if values.size != np.prod(env.action_space.shape) or not np.all(np.isfinite(values)):
-            raise ValueError(f"the baseline returned {action!r}; expected {int(np.prod(env.action_space.shape))} finite number(s) in env units")
+        if values.size != size or not np.all(np.isfinite(values)):
+            raise ValueError(f"the baseline returned {action!r}; expected {size} finite number(s) in env units")
         if isinstance(env.action_space, gym.spaces.Box):  # clipped to the bounds, as the scripts apply it
             action = np.clip(np.asarray(action).reshape(env.action_space.shape), env.action_space.low, env.action_space.high)
         obs, reward, terminated, truncated, _ = env.step(action)

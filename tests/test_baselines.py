@@ -269,6 +269,23 @@ def test_an_episode_that_never_ends_is_an_error_not_a_hang(monkeypatch):
     assert len(steps) == 50
 
 
+def test_rollout_refuses_an_action_space_without_a_fixed_shape():
+    class DictActions(gym.Env):  # a Dict space has no shape: no count of numbers to check an action against
+        observation_space = gym.spaces.Box(-1.0, 1.0, (1,))
+        action_space = gym.spaces.Dict({"steer": gym.spaces.Box(-1.0, 1.0, (1,))})
+
+        def reset(self, *, seed=None, options=None):
+            return np.zeros(1, np.float32), {}
+
+        def step(self, action):
+            raise AssertionError("a space without a shape must be refused before the first step")
+
+    asked = []
+    with pytest.raises(ValueError, match=r"^cannot measure a baseline on the action space Dict\('steer': Box\(.*\)\): it has no fixed shape$"):
+        rollout(DictActions(), lambda obs: asked.append(obs) or {"steer": np.zeros(1)}, seed=0)
+    assert asked == []
+
+
 def test_rollout_resets_a_stateful_baseline_before_every_episode():
     class Accumulating:  # its action depends on every observation since its last reset
         def __init__(self):
