@@ -55,8 +55,9 @@ def report(rows: dict[int, dict[str, Optional[float]]]) -> str:
     medians = []
     for key, form in forms.items():
         values = [row[key] for row in rows.values()]
+        reached = [value for value in values if value is not None]
         # a median over runs of which some never got there would be no step of any run
-        medians.append(cell(statistics.median(values), form) if None not in values else "–")
+        medians.append(cell(statistics.median(reached), form) if len(reached) == len(values) else "–")
     lines.append("| median | " + " | ".join(medians) + " |")
     return "\n".join(lines)
 

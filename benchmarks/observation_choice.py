@@ -30,7 +30,7 @@ def candidates(frame_bgr: np.ndarray) -> dict[str, np.ndarray]:
     cropped = frame_bgr[CROP_TOP:]
     grey = cv2.cvtColor(cropped, cv2.COLOR_BGR2GRAY)
     lane = (grey <= LANE_MAX_BRIGHTNESS).astype(np.float32)
-    out = {}
+    out: dict[str, np.ndarray] = {}
     for rows, cols in [(5, 7), (10, 14), (20, 28), (40, 56)]:
         out[f"lane mask {rows}x{cols}"] = cv2.resize(lane, (cols, rows), interpolation=cv2.INTER_AREA).reshape(-1)
     out["grey 10x14"] = cv2.resize(grey, (14, 10), interpolation=cv2.INTER_AREA).reshape(-1) / 255.0
@@ -80,17 +80,17 @@ def main() -> None:
         targets.append([cte, heading_error])
     elapsed = time.perf_counter() - start
     env.close()
-    y = np.array(targets)
-    order = rng.permutation(len(y))
-    train, test = order[: int(0.8 * len(y))], order[int(0.8 * len(y)) :]
+    truth = np.array(targets)
+    order = rng.permutation(len(truth))
+    train, test = order[: int(0.8 * len(truth))], order[int(0.8 * len(truth)) :]
     print(f"{args.frames} frames from random poses (|cte| <= 0.2 m, |heading error| <= 0.5 rad), lighting randomised; "
           f"{args.frames / elapsed:.0f} frames/s rendered and reduced")  # fmt: skip
     print("| observation | size | held-out R^2, cross-track error | held-out R^2, heading error |")
     print("|---|---|---|---|")
     for name, values in rows.items():
-        x = np.array(values, dtype=np.float64)
-        r2 = ridge_r2(x, y, train, test)
-        print(f"| {name} | {x.shape[1]} | {r2[0]:.3f} | {r2[1]:.3f} |")
+        features = np.array(values, dtype=np.float64)
+        r2 = ridge_r2(features, truth, train, test)
+        print(f"| {name} | {features.shape[1]} | {r2[0]:.3f} | {r2[1]:.3f} |")
 
 
 if __name__ == "__main__":

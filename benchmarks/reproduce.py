@@ -190,7 +190,8 @@ class Trainings:
     reaches this process alone, where Ctrl-C's SIGINT reaches the whole process group."""
 
     def __init__(self) -> None:
-        self.lock, self.running, self.stopped = threading.Lock(), set(), False
+        self.lock, self.stopped = threading.Lock(), False
+        self.running: set[subprocess.Popen] = set()
 
     def run(self, cmd: list[str], cwd: Path, log) -> int:
         """Run cmd to its end and return its exit code; after stop(), start nothing (-SIGTERM)."""
@@ -306,7 +307,7 @@ def launch_submitit(todo: list[tuple[list[str], str]], args: Args) -> None:
         if queued:  # submitted again, two jobs would train one run in one folder
             raise SystemExit(f"reproduce: error: {len(queued)} runs submitted by an earlier call are still in Slurm's queue (e.g. {queued[0][0]},"
                              f" job {queued[0][1]}); each writes its DONE as it ends: run this again once they have, or scancel them first")
-        executor = submitit.AutoExecutor(folder=str(Path(args.workdir) / "slurm"), cluster="slurm")  # never its fallback: every run at once, here
+        executor: submitit.Executor = submitit.AutoExecutor(folder=str(Path(args.workdir) / "slurm"), cluster="slurm")  # never its fallback: every run at once, here
         executor.update_parameters(timeout_min=args.slurm_timeout_min, cpus_per_task=1, slurm_partition=args.slurm_partition or None)
     else:
         executor = submitit.LocalExecutor(folder=str(Path(args.workdir) / "submitit"))
@@ -394,7 +395,8 @@ def budgets(workdir: Path, results: dict) -> str:
     PPO/TRPO+IL run whole rollouts (the budget rounded down, at least one): where theirs differ, they are named."""
     parts = []
     for env, methods in results.items():
-        steps, rollouts = set(), {}
+        steps: set[int] = set()
+        rollouts: dict[str, set[int]] = {}
         for method, runs in methods.items():
             for seed, scalars in runs.items():
                 arguments = done_arguments(run_dir(workdir, env, method, seed)) or []
@@ -499,12 +501,12 @@ def figures(results: dict, output: Path) -> list[Path]:
             (line,) = ax.plot(grid, mean, label=LABELS[method])
             ax.fill_between(grid, mean - half, mean + half, alpha=0.2, color=line.get_color())  # none where NaN
         level = np.nanmean([last(s, "charts/baseline_reward_per_step") for runs in methods.values() for s in runs.values()])
-        ax.axhline(level, color="k", linestyle="--", label="baseline")
+        ax.axhline(float(level), color="k", linestyle="--", label="baseline")
         ax.set_xlabel("environment steps (PPO/TRPO+IL: after their imitation phase)")
         ax.set_ylabel("reward per step (smoothed)")
         if "jirl" in methods:
             ax2 = ax.twinx()
-            fractions = [np.interp(grid, *zip(*s["charts/rl_control_fraction"])) for s in methods["jirl"].values() if s.get("charts/rl_control_fraction")]
+            fractions = [np.interp(grid, *np.array(s["charts/rl_control_fraction"]).T) for s in methods["jirl"].values() if s.get("charts/rl_control_fraction")]
             if fractions:
                 ax2.plot(grid, 100 * np.mean(fractions, 0), color="tab:gray", linestyle=":", label="JIRL RL control")
                 ax2.set_ylabel("JIRL RL control (%)")

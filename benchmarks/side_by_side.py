@@ -97,6 +97,8 @@ def script_at(revision: str, dest: Path, script: str = "sac_continuous.py") -> P
 def load_module(script: str, name: str = "sac_under_test") -> ModuleType:
     """Import the algorithm script at `script` as a module (its main block does not run)."""
     spec = importlib.util.spec_from_file_location(name, script)
+    if spec is None or spec.loader is None:  # a name without .py: no loader knows it
+        raise ImportError(f"cannot import {script} as a module: not a Python source file")
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module  # dataclasses with postponed annotations look their module up here
     spec.loader.exec_module(module)
@@ -107,6 +109,7 @@ def checkpoint_policy(path: Path) -> tuple[str, Callable[[np.ndarray], np.ndarra
     """The env id a SAC or JIRL checkpoint was trained on, and its deterministic policy in env units;
     ValueError for a file that is not such a checkpoint."""
     import torch
+    from gymnasium.spaces import Box
 
     if str(ROOT) not in sys.path:
         sys.path.insert(0, str(ROOT))
@@ -116,7 +119,9 @@ def checkpoint_policy(path: Path) -> tuple[str, Callable[[np.ndarray], np.ndarra
     checkpoint = sac.load_checkpoint(str(path))
     env = make_env(checkpoint["env_id"])
     actor = sac.actor_from_checkpoint(checkpoint, env)
-    low, high = env.action_space.low, env.action_space.high
+    space = env.action_space
+    assert isinstance(space, Box)  # actor_from_checkpoint has compared its bounds with the checkpoint's
+    low, high = space.low, space.high
     env.close()
 
     def policy(obs: np.ndarray) -> np.ndarray:

@@ -108,8 +108,8 @@ def main() -> None:
 
     def sac_action(check: bool) -> np.ndarray:
         with torch.inference_mode():
-            action, _, _ = actor.get_action(x)
-        action = action[0].numpy()
+            sampled, _, _ = actor.get_action(x)
+        action = sampled[0].numpy()
         if check and not math.isfinite(sum(action.tolist())):
             raise ArithmeticError("diverged")
         return action

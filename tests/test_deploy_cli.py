@@ -469,12 +469,13 @@ def test_the_modules_annotate_their_signatures():
 
 
 def test_the_modules_type_check(tmp_path):
-    """mypy finds no error in `envs/` and `deploy/` (imported modules are read, not checked; libraries without
-    types are Any). A probe file with one wrong return is checked in the same run, so the run can fail."""
+    """mypy finds no error in `envs/`, `deploy/` and `benchmarks/` (imported modules are read, not checked;
+    libraries without types are Any). A probe file with one wrong return is checked in the same run, so
+    the run can fail."""
     probe = tmp_path / "probe.py"
     probe.write_text('def f() -> int:\n    return "one"\n')
     mypy = [sys.executable, "-m", "mypy", "--ignore-missing-imports", "--follow-imports=silent", "--cache-dir", str(tmp_path / "cache")]
-    out = subprocess.run([*mypy, "envs", "deploy", str(probe)], cwd=ROOT, capture_output=True, text=True)
+    out = subprocess.run([*mypy, "envs", "deploy", "benchmarks", str(probe)], cwd=ROOT, capture_output=True, text=True)
     errors = [line for line in out.stdout.splitlines() if ": error: " in line]
     assert [line.split(": error: ")[0] for line in errors] == [f"{probe}:2"], out.stdout + out.stderr
     assert out.returncode == 1

@@ -95,6 +95,16 @@ def test_a_checkpoint_acts_with_its_mean_action_in_env_units(tmp_path, sac):
         np.testing.assert_allclose(policy(obs), 2.0 * np.tanh(mean[0].numpy()), rtol=1e-5, atol=1e-6)  # Pendulum: [-2, 2]; float32 near 0
 
 
+def test_a_file_that_is_not_python_source_is_refused_as_a_script(tmp_path):
+    import side_by_side
+
+    text = tmp_path / "sac_continuous.txt"
+    text.write_text("print('never run')\n")
+    with pytest.raises(ImportError, match=f"cannot import {text} as a module: not a Python source file"):
+        side_by_side.load_module(str(text), "not_a_script")
+    assert "not_a_script" not in sys.modules
+
+
 def test_a_corrupt_checkpoint_is_reported_and_the_rest_still_run(tmp_path, monkeypatch, capsys, sac):
     good = tmp_path / "good.cleanrl_model"
     small_checkpoint(sac, good)
