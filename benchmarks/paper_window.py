@@ -32,7 +32,7 @@ import statistics
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Iterable, Optional
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -107,22 +107,23 @@ def measure(seed: int, jirl: dict[str, Series], sac: dict[str, Series], episodes
     t_end = window_end(jirl["charts/episodic_return"], sac["charts/episodic_return"], t_100, episodes, tolerance, sustained)
     last_step = jirl["charts/episodic_return"][-1][0]
     end = last_step if t_end is None else t_end
+    forms = FORMS.values()
     return Window(
         seed=seed,
         last_step=last_step,
         t_100=t_100,
         t_end=t_end,
-        jirl_phases={p: in_both_forms(lambda f: value_at(jirl.get(f"phases/baseline_regret{f}_{p}", []), end)) for p in PHASES},
-        jirl=in_both_forms(lambda f: value_at(jirl[f"charts/baseline_regret{f}"], end)),
-        sac=in_both_forms(lambda f: value_at(sac[f"charts/baseline_regret{f}"], end)),
-        sac_whole=in_both_forms(lambda f: sac[f"charts/baseline_regret{f}"][-1][1]),
-        jirl_whole=in_both_forms(lambda f: jirl[f"charts/baseline_regret{f}"][-1][1]),
+        jirl_phases={p: pair(value_at(jirl.get(f"phases/baseline_regret{f}_{p}", []), end) for f in forms) for p in PHASES},
+        jirl=pair(value_at(jirl[f"charts/baseline_regret{f}"], end) for f in forms),
+        sac=pair(value_at(sac[f"charts/baseline_regret{f}"], end) for f in forms),
+        sac_whole=pair(sac[f"charts/baseline_regret{f}"][-1][1] for f in forms),
+        jirl_whole=pair(jirl[f"charts/baseline_regret{f}"][-1][1] for f in forms),
     )
 
 
-def in_both_forms(regret: Callable[[str], float]) -> tuple[float, float]:
-    """(episode form, per step): regret(suffix) for each of FORMS' tag suffixes."""
-    episode, per_step = (regret(suffix) for suffix in FORMS.values())
+def pair(regrets: Iterable[float]) -> tuple[float, float]:
+    """(episode form, per step) from the regrets read for FORMS' two tag suffixes, in order."""
+    episode, per_step = regrets
     return episode, per_step
 
 
