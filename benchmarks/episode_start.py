@@ -25,6 +25,7 @@ import statistics
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from types import ModuleType
 from typing import Callable, Optional
 
 import numpy as np
@@ -39,11 +40,14 @@ from envs import get_baseline, make_env  # noqa: E402
 from side_by_side import load_module  # noqa: E402
 
 
+OVERFLOW = "the policy's output at step {step} of episode {episode} is not finite: its network overflows float32 there"
+
+
 @dataclass(frozen=True)
 class Episode:
     episode_return: float
     length: int
-    fell: bool  # terminated before the time limit
+    terminated: bool  # ended before the time limit (Walker2D: fell)
     rl_steps: int  # steps the agent's action was applied
     baseline_at_start: int  # steps among the first `start_steps` the baseline's action was applied
     baseline_after: int  # ... and after them
@@ -51,24 +55,47 @@ class Episode:
     log_prob_after: float  # ... and after them
 
 
-def drive(checkpoint_path: str, episodes: int, handoff: int = 0, gate_c: Optional[float] = None, start_steps: int = 20, sample_seed: int = 0) -> list[Episode]:
+@dataclass(frozen=True)
+class Checkpoint:
+    path: str
+    env_id: str
+    seed: int  # the run's: the final evaluation resets episode i with seed + EVAL_SEED_OFFSET + i
+    gate_k: int
+    actor: torch.nn.Module
+    script: ModuleType  # jirl_sac_continuous.py: its gate, log-density, rho and unit conversions
+
+
+def load(path: str) -> Checkpoint:
+    """A SAC or JIRL checkpoint's policy and run settings; ValueError for a file that is not one."""
+    script = load_module(str(ROOT / "jirl_sac_continuous.py"), "jirl_under_test")
+    checkpoint = script.load_checkpoint(path)
+    env = make_env(checkpoint["env_id"], 0)
+    actor = script.actor_from_checkpoint(checkpoint, env)
+    env.close()
+    args = checkpoint["args"]  # a SAC checkpoint has no K: the JIRL default
+    return Checkpoint(path, checkpoint["env_id"], args["seed"], args.get("gate_k", 5), actor, script)
+
+
+def median_or_nan(values: list[float]) -> float:
+    return float(np.median(values)) if values else math.nan
+
+
+def drive(checkpoint: Checkpoint, episodes: int, handoff: int = 0, gate_c: Optional[float] = None, start_steps: int = 20, sample_seed: int = 0) -> list[Episode]:
     """Episodes of the checkpoint's policy from its evaluation's reset seeds: the baseline acts for the
     first `handoff` steps, then the deterministic policy; or, with `gate_c`, the gate decides every step
-    between the baseline's action and one sampled from the policy (torch generator `sample_seed`)."""
-    jirl = load_module(str(ROOT / "jirl_sac_continuous.py"), "jirl_under_test")
-    checkpoint = jirl.load_checkpoint(checkpoint_path)
-    env_id, args = checkpoint["env_id"], checkpoint["args"]
-    env = make_env(env_id, args["seed"])
-    actor = jirl.actor_from_checkpoint(checkpoint, env)
-    baseline: Callable[[np.ndarray], np.ndarray] = get_baseline(env_id)
+    between the baseline's action and one sampled from the policy (one torch generator, `sample_seed`,
+    over all the episodes). ValueError if the policy's action is not finite where it acts."""
+    jirl, actor = checkpoint.script, checkpoint.actor
+    env = make_env(checkpoint.env_id, checkpoint.seed)
+    baseline: Callable[[np.ndarray], np.ndarray] = get_baseline(checkpoint.env_id)
     space = env.action_space
     assert isinstance(space, Box)  # actor_from_checkpoint has compared its bounds with the checkpoint's
     low, high = space.low, space.high
     generator = torch.Generator().manual_seed(sample_seed)
     found = []
     for i in range(episodes):
-        obs, _ = env.reset(seed=args["seed"] + jirl.EVAL_SEED_OFFSET + i)
-        gate = jirl.Gate(args.get("gate_k", 5))  # a SAC checkpoint has no K: the JIRL default
+        obs, _ = env.reset(seed=checkpoint.seed + jirl.EVAL_SEED_OFFSET + i)
+        gate = jirl.Gate(checkpoint.gate_k)
         if hasattr(baseline, "reset"):  # a baseline with a memory (the track's lane follower) starts afresh
             baseline.reset()
         episode_return, length, rl_steps, at_start, after, done, terminated = 0.0, 0, 0, 0, 0, False, False
@@ -77,37 +104,39 @@ def drive(checkpoint_path: str, episodes: int, handoff: int = 0, gate_c: Optiona
             baseline_action = jirl.to_policy_units(jirl.check_baseline_action(baseline(obs), space), low, high)
             with torch.inference_mode():
                 mean, log_std = actor(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0))
-                sampled = torch.tanh(torch.normal(mean, log_std.exp(), generator=generator))[0].numpy()
             mean64, log_std64 = mean[0].numpy().astype(np.float64), log_std[0].numpy().astype(np.float64)
             if gate_c is None:
                 rl_acts = length >= handoff
                 action = np.tanh(mean64).astype(np.float32) if rl_acts else baseline_action.astype(np.float32)
             else:  # Alg. 1, line 4: the gate (Alg. 3), as the training runs it
+                if not np.isfinite(mean64).all() or not np.isfinite(log_std64).all():  # the gate weighs the policy at every step
+                    raise ValueError(OVERFLOW.format(step=length, episode=i))
+                with torch.inference_mode():
+                    sampled = torch.tanh(torch.normal(mean, log_std.exp(), generator=generator))[0].numpy()  # a^rl ~ pi(.|s)
                 log_prob = jirl.squashed_log_prob(mean64, log_std64, baseline_action)
                 log_probs.append(log_prob)
                 rl_acts = gate.decide(log_prob, jirl.divergence(mean64, log_std64, baseline_action), gate_c)
                 gate.record(rl_acts)
                 action = sampled if rl_acts else baseline_action.astype(np.float32)
             if not np.isfinite(action).all():
-                raise ValueError(f"{checkpoint_path}: the policy's action at step {length} of episode {i} is not finite")
+                raise ValueError(OVERFLOW.format(step=length, episode=i))
             obs, reward, terminated, truncated, _ = env.step(jirl.to_env_units(action, low, high))
             rl_steps += rl_acts
             at_start += not rl_acts and length < start_steps
             after += not rl_acts and length >= start_steps
             episode_return, length, done = episode_return + float(reward), length + 1, terminated or truncated
-        start, rest = log_probs[:start_steps], log_probs[start_steps:]
-        median = lambda values: float(np.median(values)) if values else math.nan  # noqa: E731
-        found.append(Episode(episode_return, length, bool(terminated), rl_steps, at_start, after, median(start), median(rest)))
+        start, rest = median_or_nan(log_probs[:start_steps]), median_or_nan(log_probs[start_steps:])
+        found.append(Episode(episode_return, length, bool(terminated), rl_steps, at_start, after, start, rest))
     env.close()
     return found
 
 
-def row(name: str, mode: str, found: list[Episode], start_steps: int) -> str:
+def row(name: str, mode: str, found: list[Episode], start_steps: int, gated: bool) -> str:
     returns = [e.episode_return for e in found]
     lengths = [e.length for e in found]
     steps = sum(lengths)
     gate = "–"
-    if mode.startswith("gate"):
+    if gated:
         gate = (
             f"{100 * sum(e.rl_steps for e in found) / steps:.1f} % | {statistics.median(e.baseline_at_start for e in found):g} of {start_steps}"
             f" | {statistics.median(e.baseline_after for e in found):g}"
@@ -117,7 +146,7 @@ def row(name: str, mode: str, found: list[Episode], start_steps: int) -> str:
         gate += " | – | – | – | –"
     return (
         f"| {name} | {mode} | {statistics.median(returns):.1f} ({min(returns):.1f} to {max(returns):.1f}) | {statistics.median(lengths):g} ({min(lengths)} to {max(lengths)})"
-        f" | {sum(e.fell for e in found)} of {len(found)} | {gate} |"
+        f" | {sum(e.terminated for e in found)} of {len(found)} | {gate} |"
     )
 
 
@@ -145,23 +174,27 @@ def main() -> None:
         parser.error("--start-steps must be at least 1")
     torch.set_num_threads(1)
     print(
-        "| checkpoint | who acts | return, median (range) | length, median (range) | fell | RL steps"
+        "| checkpoint | who acts | return, median (range) | length, median (range) | terminated early | RL steps"
         " | baseline steps at the start, median | after, median | log-density of a^b at the start, median | after |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for path in args.checkpoints:
+        try:
+            checkpoint = load(str(path))
+        except ValueError as err:
+            print(f"| {path} | unreadable: {' '.join(str(err).split())} | | | | | | | | |", flush=True)  # one table row
+            continue
         modes: list[tuple[str, dict]] = [("alone", {})]
         modes += [(f"the baseline's first {n} steps, then the policy", {"handoff": n}) for n in args.handoffs]
         if args.gate_c is not None:
             modes.append((f"gate, C = {args.gate_c:g}", {"gate_c": args.gate_c, "start_steps": args.start_steps, "sample_seed": args.sample_seed}))
         for mode, options in modes:
             try:
-                found = drive(str(path), args.episodes, **options)
-            except ValueError as err:
-                print(f"| {path} | unreadable: {' '.join(str(err).split())} | | | | | | | | |", flush=True)  # one table row
-                break
-            print(row(str(path), mode, found, args.start_steps), flush=True)
-
+                found = drive(checkpoint, args.episodes, **options)
+            except ValueError as err:  # a policy that overflows, or a failing env or baseline: say so, go on
+                print(f"| {path} | {mode}: failed: {' '.join(str(err).split())} | | | | | | | | |", flush=True)
+                continue
+            print(row(str(path), mode, found, args.start_steps, "gate_c" in options), flush=True)
 
 if __name__ == "__main__":
     main()

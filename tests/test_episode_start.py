@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import ROOT, load_script, small_checkpoint, table_cells
+from conftest import ROOT, load_script, overflow_the_actor, small_checkpoint, table_cells
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import episode_start  # noqa: E402
@@ -81,15 +81,15 @@ def by_hand_gate(actor, episodes: int, c: float, sample_seed: int, k: int = 5) -
 
 def test_alone_is_the_final_evaluation(checkpoint):
     path, _ = checkpoint
-    found = episode_start.drive(str(path), 2)
+    found = episode_start.drive(episode_start.load(str(path)), 2)
     evaluated = load_script("sac_continuous").evaluate(str(path), "Pendulum-v1", 2, SEED)
     assert [e.episode_return for e in found] == pytest.approx(evaluated, rel=1e-9)
-    assert [(e.length, e.fell, e.rl_steps, e.baseline_at_start, e.baseline_after) for e in found] == [(LENGTH, False, LENGTH, 0, 0)] * 2
+    assert [(e.length, e.terminated, e.rl_steps, e.baseline_at_start, e.baseline_after) for e in found] == [(LENGTH, False, LENGTH, 0, 0)] * 2
 
 
 def test_the_baseline_holds_the_first_n_steps_then_the_policy_acts(checkpoint):
     path, actor = checkpoint
-    found = episode_start.drive(str(path), 2, handoff=7)
+    found = episode_start.drive(episode_start.load(str(path)), 2, handoff=7)
     assert [e.episode_return for e in found] == pytest.approx([by_hand(actor, i, 7) for i in range(2)], rel=1e-5)
     assert [e.rl_steps for e in found] == [LENGTH - 7] * 2
     assert abs(found[0].episode_return - by_hand(actor, 0, 0)) > 0.1  # the hand-off changed the episode, by more than the match's tolerance
@@ -97,7 +97,7 @@ def test_the_baseline_holds_the_first_n_steps_then_the_policy_acts(checkpoint):
 
 def test_a_handoff_past_the_episode_is_the_baseline_alone(checkpoint):
     path, _ = checkpoint
-    found = episode_start.drive(str(path), 2, handoff=LENGTH)
+    found = episode_start.drive(episode_start.load(str(path)), 2, handoff=LENGTH)
     env, baseline = gym.make("Pendulum-v1"), get_baseline("Pendulum-v1")
     offset = load_script("sac_continuous").EVAL_SEED_OFFSET
     assert [e.episode_return for e in found] == pytest.approx([rollout(env, baseline, SEED + offset + i).sum() for i in range(2)], rel=1e-6)
@@ -106,21 +106,21 @@ def test_a_handoff_past_the_episode_is_the_baseline_alone(checkpoint):
 
 def test_the_gate_at_c_0_gives_the_agent_every_step(checkpoint):
     path, _ = checkpoint
-    found = episode_start.drive(str(path), 2, gate_c=0.0)
+    found = episode_start.drive(episode_start.load(str(path)), 2, gate_c=0.0)
     assert [(e.rl_steps, e.baseline_at_start, e.baseline_after) for e in found] == [(LENGTH, 0, 0)] * 2
 
 
 def test_the_gate_at_a_huge_c_gives_the_baseline_every_step_and_counts_where(checkpoint):
     path, _ = checkpoint
-    found = episode_start.drive(str(path), 2, gate_c=1e300, start_steps=15)
+    found = episode_start.drive(episode_start.load(str(path)), 2, gate_c=1e300, start_steps=15)
     assert [(e.rl_steps, e.baseline_at_start, e.baseline_after) for e in found] == [(0, 15, LENGTH - 15)] * 2
-    alone = episode_start.drive(str(path), 2, handoff=LENGTH)
+    alone = episode_start.drive(episode_start.load(str(path)), 2, handoff=LENGTH)
     assert [e.episode_return for e in found] == pytest.approx([e.episode_return for e in alone], rel=1e-9)
 
 
 def test_the_gate_between_the_two_is_alg_3_with_the_policys_draws(checkpoint):
     path, actor = checkpoint
-    found = episode_start.drive(str(path), 2, gate_c=1e3, sample_seed=2)
+    found = episode_start.drive(episode_start.load(str(path)), 2, gate_c=1e3, sample_seed=2)
     by_hand = by_hand_gate(actor, 2, 1e3, 2)
     assert [e.rl_steps for e in found] == [n for _, n in by_hand] and 0 < found[0].rl_steps < LENGTH
     assert [e.episode_return for e in found] == pytest.approx([r for r, _ in by_hand], rel=1e-9)
@@ -140,7 +140,7 @@ def test_a_baseline_with_a_memory_is_reset_at_each_episode(checkpoint, monkeypat
 
     remembering = Remembering()
     monkeypatch.setattr(episode_start, "get_baseline", lambda env_id: remembering)
-    episode_start.drive(str(path), 3, handoff=5)
+    episode_start.drive(episode_start.load(str(path)), 3, handoff=5)
     assert remembering.resets == 3
 
 
@@ -148,9 +148,9 @@ def test_the_gate_between_the_two_shares_the_steps_and_repeats_with_its_seed(che
     path, _ = checkpoint
     shares = {}
     for c in (1e-3, 1.0, 1e3):
-        found = episode_start.drive(str(path), 2, gate_c=c, sample_seed=1)
+        found = episode_start.drive(episode_start.load(str(path)), 2, gate_c=c, sample_seed=1)
         assert all(e.rl_steps + e.baseline_at_start + e.baseline_after == e.length for e in found)
-        assert found == episode_start.drive(str(path), 2, gate_c=c, sample_seed=1)
+        assert found == episode_start.drive(episode_start.load(str(path)), 2, gate_c=c, sample_seed=1)
         shares[c] = sum(e.rl_steps for e in found)
     assert 0 < shares[1e3] < 2 * LENGTH and shares[1e-3] > shares[1e3]  # a larger C hands the baseline more steps
 
@@ -166,9 +166,9 @@ def test_the_gate_reports_the_log_density_it_weighs_at_the_start(checkpoint):
     x = np.arctanh(np.clip(baseline_action, -1 + 1e-3, 1 - 1e-3))
     std = np.exp(log_std[0].numpy().astype(np.float64))
     by_hand = float(np.sum(-0.5 * ((x - mean[0].numpy()) / std) ** 2 - np.log(std * np.sqrt(2 * np.pi)) - np.log1p(-np.tanh(x) ** 2)))
-    found = episode_start.drive(str(path), 1, gate_c=1e300, start_steps=1)  # the baseline acts: the episode is its own
+    found = episode_start.drive(episode_start.load(str(path)), 1, gate_c=1e300, start_steps=1)  # the baseline acts: the episode is its own
     assert found[0].log_prob_at_start == pytest.approx(by_hand, rel=1e-4)
-    assert np.isfinite(found[0].log_prob_after) and np.isnan(episode_start.drive(str(path), 1)[0].log_prob_at_start)
+    assert np.isfinite(found[0].log_prob_after) and np.isnan(episode_start.drive(episode_start.load(str(path)), 1)[0].log_prob_at_start)
 
 
 def test_the_table_has_a_row_per_way_and_the_evaluations_median(checkpoint, monkeypatch, capsys):
@@ -197,6 +197,26 @@ def test_bad_options_are_refused_by_name(options, message, monkeypatch, capsys, 
     with pytest.raises(SystemExit) as stopped:
         episode_start.main()
     assert stopped.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_a_policy_that_overflows_is_named_in_its_rows_and_the_next_file_is_measured(checkpoint, monkeypatch, capsys, tmp_path):
+    path, _ = checkpoint
+    overflowing = tmp_path / "overflowing.cleanrl_model"
+    saved = torch.load(path, weights_only=False)
+    overflow_the_actor(saved["actor"])
+    torch.save(saved, overflowing)
+    with pytest.raises(ValueError, match="output at step 0 of episode 0 is not finite"):
+        episode_start.drive(episode_start.load(str(overflowing)), 1)
+    monkeypatch.setattr(sys, "argv", ["episode_start.py", "--episodes", "1", "--handoffs", "5", "--gate-c", "1", str(overflowing), str(path)])
+    episode_start.main()
+    rows = [table_cells(line) for line in capsys.readouterr().out.splitlines() if line.startswith("| ")][1:]  # below the header
+    overflow = "is not finite: its network overflows float32 there"
+    assert [r[1] for r in rows[:3]] == [
+        f"alone: failed: the policy's output at step 0 of episode 0 {overflow}",
+        f"the baseline's first 5 steps, then the policy: failed: the policy's output at step 5 of episode 0 {overflow}",  # where it first acts
+        f"gate, C = 1: failed: the policy's output at step 0 of episode 0 {overflow}",  # where the gate first weighs it
+    ]
+    assert [r[0] for r in rows[3:]] == [str(path)] * 3
 
 
 def test_a_file_that_is_no_checkpoint_is_one_row_that_says_so(checkpoint, monkeypatch, capsys, tmp_path):
