@@ -182,6 +182,13 @@ def test_the_table_has_a_row_per_way_and_the_evaluations_median(checkpoint, monk
     assert rows[0][3] == f"{LENGTH} ({LENGTH} to {LENGTH})" and rows[0][4] == "0 of 3" and rows[3][5].endswith("%")
 
 
+def test_no_handoffs_leave_the_policy_alone_and_the_gate(checkpoint, monkeypatch, capsys):
+    path, _ = checkpoint
+    monkeypatch.setattr(sys, "argv", ["episode_start.py", "--episodes", "1", "--handoffs", "", "--gate-c", "0", str(path)])
+    episode_start.main()
+    assert [table_cells(line)[1] for line in capsys.readouterr().out.splitlines() if line.startswith(f"| {path}")] == ["alone", "gate, C = 0"]
+
+
 @pytest.mark.parametrize(
     "options, message",
     [
