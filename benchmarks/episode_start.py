@@ -157,10 +157,10 @@ def counts(text: str) -> list[int]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("checkpoints", type=Path, nargs="+")
+    parser.add_argument("checkpoints", type=Path, nargs="+", help="files the scripts wrote with --save-model")
     parser.add_argument("--episodes", type=int, default=10, help="the final evaluation's count")
     parser.add_argument("--handoffs", type=counts, default=[5, 20, 50], help="the baseline's steps before the policy acts, comma-separated (5,20,50); none: ''")
-    parser.add_argument("--gate-c", type=float, default=None, help="the gate's C (the earned schedule's C when the run ended); none: no gate rows")
+    parser.add_argument("--gate-c", type=float, default=None, help="the gate's C, e.g. the run's last gate/c in its TensorBoard log; none: no gate rows")
     parser.add_argument("--start-steps", type=int, default=20, help="an episode's start, for the gate's count of the baseline's steps")
     parser.add_argument("--sample-seed", type=int, default=0, help="seeds the gate's draws of a^rl")
     args = parser.parse_args()
