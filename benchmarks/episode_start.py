@@ -57,7 +57,6 @@ class Episode:
 
 @dataclass(frozen=True)
 class Checkpoint:
-    path: str
     env_id: str
     seed: int  # the run's: the final evaluation resets episode i with seed + EVAL_SEED_OFFSET + i
     gate_k: int
@@ -73,7 +72,7 @@ def load(path: str) -> Checkpoint:
     actor = script.actor_from_checkpoint(checkpoint, env)
     env.close()
     args = checkpoint["args"]  # a SAC checkpoint has no K: the JIRL default
-    return Checkpoint(path, checkpoint["env_id"], args["seed"], args.get("gate_k", 5), actor, script)
+    return Checkpoint(checkpoint["env_id"], args["seed"], args.get("gate_k", 5), actor, script)
 
 
 def median_or_nan(values: list[float]) -> float:
