@@ -106,7 +106,8 @@ def drive(checkpoint: Checkpoint, episodes: int, handoff: int = 0, gate_c: Optio
             mean64, log_std64 = mean[0].numpy().astype(np.float64), log_std[0].numpy().astype(np.float64)
             if gate_c is None:
                 rl_acts = length >= handoff
-                action = np.tanh(mean64).astype(np.float32) if rl_acts else baseline_action.astype(np.float32)
+                # the evaluation's mean action, to the last bit: on Walker2D a tanh taken in float64 moves some episodes
+                action = torch.tanh(mean)[0].numpy() if rl_acts else baseline_action.astype(np.float32)
             else:  # Alg. 1, line 4: the gate (Alg. 3), as the training runs it
                 if not np.isfinite(mean64).all() or not np.isfinite(log_std64).all():  # the gate weighs the policy at every step
                     raise ValueError(OVERFLOW.format(step=length, episode=i))

@@ -7,6 +7,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from gymnasium.envs.classic_control.pendulum import PendulumEnv
 
 from conftest import ROOT, load_script, overflow_the_actor, small_checkpoint, table_cells
 
@@ -79,11 +80,38 @@ def by_hand_gate(actor, episodes: int, c: float, sample_seed: int, k: int = 5) -
     return found
 
 
-def test_alone_is_the_final_evaluation(checkpoint):
-    path, _ = checkpoint
+ULP_APART = -1.3809897  # a float32 mean whose tanh, taken in float64 and rounded, is one ulp from torch's float32 tanh
+
+
+def constant_actor_checkpoint(path, mean: float):
+    """A SAC checkpoint whose actor's mean is `mean` in every state."""
+    sac = load_script("sac_continuous")
+    env = sac.make_env("Pendulum-v1", 0)
+    actor, qf = sac.Actor(3, 1, 16), sac.SoftQNetwork(3, 1, 16)
+    with torch.no_grad():
+        actor.fc_mean.weight.zero_()
+        actor.fc_mean.bias.fill_(mean)
+    sac.save_checkpoint(str(path), "Pendulum-v1", env, actor, qf, sac.Args(hidden_size=16, seed=SEED))
+    env.close()
+
+
+@pytest.mark.parametrize("constant", [False, True], ids=["trained-like", "one-ulp-apart"])
+def test_alone_is_the_final_evaluation(checkpoint, tmp_path, monkeypatch, constant):
+    """The evaluation's actions to the last bit: on Walker2D an action one float32 ulp away (a tanh taken
+    in float64) sends an episode elsewhere. Pendulum's returns would hide it, so the actions are compared."""
+    path = checkpoint[0]
+    if constant:
+        assert np.tanh(np.float64(ULP_APART)).astype(np.float32) != torch.tanh(torch.tensor([[ULP_APART]])).item()
+        path = tmp_path / "constant.cleanrl_model"
+        constant_actor_checkpoint(path, ULP_APART)
+    applied: list[bytes] = []
+    step = PendulumEnv.step
+    monkeypatch.setattr(PendulumEnv, "step", lambda env, u: (applied.append(np.asarray(u).tobytes()), step(env, u))[1])
     found = episode_start.drive(episode_start.load(str(path)), 2)
+    by_tool, applied[:] = applied[:], []
     evaluated = load_script("sac_continuous").evaluate(str(path), "Pendulum-v1", 2, SEED)
-    assert [e.episode_return for e in found] == pytest.approx(evaluated, rel=1e-9)
+    assert len(by_tool) == 2 * LENGTH and by_tool == applied
+    assert [e.episode_return for e in found] == evaluated
     assert [(e.length, e.terminated, e.rl_steps, e.baseline_at_start, e.baseline_after) for e in found] == [(LENGTH, False, LENGTH, 0, 0)] * 2
 
 
