@@ -103,12 +103,12 @@ def drive(checkpoint: Checkpoint, episodes: int, handoff: int = 0, gate_c: Optio
             baseline_action = jirl.to_policy_units(jirl.check_baseline_action(baseline(obs), space), low, high)
             with torch.inference_mode():
                 mean, log_std = actor(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0))
-            mean64, log_std64 = mean[0].numpy().astype(np.float64), log_std[0].numpy().astype(np.float64)
             if gate_c is None:
                 rl_acts = length >= handoff
                 # the evaluation's mean action, to the last bit: on Walker2D a tanh taken in float64 moves some episodes
                 action = torch.tanh(mean)[0].numpy() if rl_acts else baseline_action.astype(np.float32)
             else:  # Alg. 1, line 4: the gate (Alg. 3), as the training runs it
+                mean64, log_std64 = mean[0].numpy().astype(np.float64), log_std[0].numpy().astype(np.float64)
                 if not np.isfinite(mean64).all() or not np.isfinite(log_std64).all():  # the gate weighs the policy at every step
                     raise ValueError(OVERFLOW.format(step=length, episode=i))
                 with torch.inference_mode():
