@@ -61,6 +61,20 @@ def table_cells(row: str) -> list[str]:
     return [cell.strip() for cell in row.strip("|").split("|")]
 
 
+def markdown_tables(text: str) -> list[tuple[int, list[str], list[list[str]]]]:
+    """Each Markdown table in `text`: the line its header is on (from 1), the header's cells and its rows'
+    cells, bold marks dropped."""
+    found, lines, start = [], text.replace("**", "").splitlines(), None
+    for number, line in enumerate([*lines, ""], 1):
+        if line.startswith("|") and start is None:
+            start = number
+        elif not line.startswith("|") and start is not None:
+            header, _, *rows = lines[start - 1 : number - 1]
+            found.append((start, table_cells(header), [table_cells(row) for row in rows]))
+            start = None
+    return found
+
+
 def refusal(call, *args) -> str:
     """The message of the ValueError that `call(*args)` must raise."""
     with pytest.raises(ValueError) as raised:

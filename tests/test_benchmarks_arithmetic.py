@@ -1,16 +1,18 @@
 """BENCHMARKS.md's summaries are arithmetic on figures it also prints: a median in parentheses after the
-figures it summarises, a table's median and mean ± 95 % CI rows under its seed rows, and each seed's
-SAC / JIRL regret ratio. A seed measured again, or a summary typed by hand, must not leave them behind,
-so each is computed here again from the printed figures. Those are rounded: a median or a mean may differ
-from the computation by one unit of its last digit, a confidence interval by that or 1 % of itself, and a
-ratio by half a unit plus what the rounding of its two regrets allows."""
+figures it summarises, a table's median and mean ± 95 % CI rows under its seed rows, each seed's SAC / JIRL
+regret ratio, and the ratios of the medians that the targets table gives. A seed measured again, or a
+summary typed by hand, must not leave them behind, so each is computed here again from the printed figures.
+Those are rounded: a median or a mean may differ from the computation by one unit of its last digit, a
+confidence interval by that or 1 % of itself, and a ratio by half a unit plus what the rounding of its two
+regrets allows."""
 
+import itertools
 import re
 import statistics
 
 from scipy import stats
 
-from conftest import ROOT, table_cells
+from conftest import ROOT, markdown_tables
 
 FIGURE = r"[−-]?\d[\d,]*(?:\.\d+)?"
 FIGURES = rf"{FIGURE}(?: ?%)?(?: / {FIGURE}(?: ?%)?)+"  # 1,431 / 2,443 / 1,853, or 89.9 / 93.4 %
@@ -32,19 +34,16 @@ def figures(text: str) -> list[str]:
     return re.findall(FIGURE, text)
 
 
+def is_ratio(stated: str, sac: str, jirl: str) -> bool:
+    """A printed ratio is SAC's printed regret over JIRL's, within half a unit of its last digit and what the
+    rounding of the two regrets allows."""
+    quotient = value(sac) / value(jirl)
+    slack = quotient * (0.5 * unit(sac) / value(sac) + 0.5 * unit(jirl) / (value(jirl) - 0.5 * unit(jirl)))
+    return abs(quotient - value(stated)) <= 0.5 * unit(stated) + slack + 1e-9
+
+
 def tables() -> list[tuple[int, list[str], list[list[str]]]]:
-    """Each table of BENCHMARKS.md: the line of its header, the header's cells, and its rows' cells, bold
-    marks dropped."""
-    found, lines = [], (ROOT / "BENCHMARKS.md").read_text().replace("**", "").splitlines()
-    start = None
-    for number, line in enumerate([*lines, ""], 1):
-        if line.startswith("|") and start is None:
-            start = number
-        elif not line.startswith("|") and start is not None:
-            header, _, *rows = lines[start - 1 : number - 1]
-            found.append((start, table_cells(header), [table_cells(row) for row in rows]))
-            start = None
-    return found
+    return markdown_tables((ROOT / "BENCHMARKS.md").read_text())
 
 
 def test_the_helpers_read_figures_as_printed():
@@ -121,8 +120,56 @@ def test_each_seeds_ratio_is_sacs_regret_over_jirls():
                 continue
             for form, stated in zip(("regret per step", "regret (episode form)"), figures(row[ratio[0]]), strict=True):
                 sac, jirl = row[regrets["SAC", form]], row[regrets["JIRL", form]]
-                quotient = value(sac) / value(jirl)
-                slack = quotient * (0.5 * unit(sac) / value(sac) + 0.5 * unit(jirl) / (value(jirl) - 0.5 * unit(jirl)))
-                assert abs(quotient - value(stated)) <= 0.5 * unit(stated) + slack + 1e-9, f"table at line {line}, seed {row[0]}, {form}: {stated}, but {sac} / {jirl} is {quotient:.2f}"
+                assert is_ratio(stated, sac, jirl), f"table at line {line}, seed {row[0]}, {form}: {stated}, but {sac} / {jirl} is {value(sac) / value(jirl):.2f}"
                 checked += 1
     assert checked >= 140, "fewer ratios than BENCHMARKS.md states: are its tables' headers still read?"
+
+
+# Rows of the targets table whose subsection gives JIRL's seeds only, and the subsection with SAC's runs
+SAC_ELSEWHERE = {
+    "Lunar Lander 100k, `--penalty-sigma2 3`, 10 seeds (Xeon)": "The earned hand-over on ten seeds, on another CPU (LunarLanderContinuous-v3, 100k steps)",
+}
+
+
+def median_regrets(text: str) -> dict[str, list[tuple[str, str]]]:
+    """The medians of regret that the tables in `text` give, per step and in the episode form, as printed:
+    {"SAC": [(per step, episode form), ...], "JIRL": [...]}. A table of seeds gives them in its median row
+    under `SAC regret per step` and `JIRL ... regret (episode form)`; a table of methods in a row per
+    method, as `a / b / c (median)` or `median (mean ± CI)`."""
+    found: dict[str, list[tuple[str, str]]] = {"SAC": [], "JIRL": []}
+    for _, header, rows in markdown_tables(text):
+        medians = [row for row in rows if row[0] == "median"]
+        for method in found:
+            columns = [i for form in ("regret per step", "regret (episode form)") for i, name in enumerate(header) if name.startswith(method) and name.endswith(form)]
+            if medians and len(columns) == 2:
+                found[method].append((medians[0][columns[0]], medians[0][columns[1]]))
+        step = [i for i, name in enumerate(header) if "regret per step" in name]
+        episode = [i for i, name in enumerate(header) if "episode form" in name or "regret per episode" in name]
+        if not (step and episode) or medians:
+            continue
+        for row in rows:
+            pair = []
+            for cell in (row[step[0]], row[episode[0]]):
+                summary = MEDIAN_AFTER.fullmatch(cell) or re.fullmatch(rf"()({FIGURE}) \({FIGURE} ± {FIGURE}\)", cell)
+                pair.append(summary.group(2) if summary else None)
+            if None not in pair:
+                found["SAC" if row[0].startswith("SAC") else "JIRL"].append((pair[0], pair[1]))
+    return found
+
+
+def test_the_targets_tables_regret_ratios_are_sacs_median_over_jirls():
+    """Each row's two ratios, SAC / JIRL per step and in the episode form, are those of SAC's medians and one
+    JIRL setting's, in the subsection the row names."""
+    from test_targets_table import TABLE, subsections
+
+    sections = subsections((ROOT / "BENCHMARKS.md").read_text())
+    targets = markdown_tables(sections[TABLE].split("\n\n- ", 1)[0])[0][2]
+    assert len(targets) == 20, "a row added or lost: count it here"
+    for setting, episode_form, per_step, *_, title in targets:
+        regrets = median_regrets(sections[title])
+        if setting in SAC_ELSEWHERE:
+            regrets["SAC"] = median_regrets(sections[SAC_ELSEWHERE[setting]])["SAC"]
+        stated = [figures(per_step)[0], figures(episode_form)[0]]
+        pairs = list(itertools.product(regrets["SAC"], regrets["JIRL"]))
+        given = [" and ".join(f"{value(s) / value(j):.2f}" for s, j in zip(sac, jirl)) for sac, jirl in pairs]
+        assert any(all(map(is_ratio, stated, sac, jirl)) for sac, jirl in pairs), f"{setting!r}: {stated[0]}× per step and {stated[1]}× in the episode form, but {title!r} gives {given}"
