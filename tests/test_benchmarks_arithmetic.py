@@ -1,10 +1,10 @@
 """BENCHMARKS.md's summaries are arithmetic on figures it also prints: a median in parentheses after the
 figures it summarises, a table's median and mean ± 95 % CI rows under its seed rows, each seed's SAC / JIRL
-regret ratio, and the ratios of the medians that the targets table gives. A seed measured again, or a
-summary typed by hand, must not leave them behind, so each is computed here again from the printed figures.
-Those are rounded: a median or a mean may differ from the computation by one unit of its last digit, a
-confidence interval by that or 1 % of itself, and a ratio by half a unit plus what the rounding of its two
-regrets allows."""
+regret ratio, and the targets table's ratios of medians and shares of SAC's return. A seed measured again,
+or a summary typed by hand, must not leave them behind, so each is computed here again from the printed
+figures. Those are rounded: a median or a mean may differ from the computation by one unit of its last
+digit, a confidence interval by that or 1 % of itself, and a ratio or a share by half a unit plus what the
+rounding of the figures it divides allows."""
 
 import itertools
 import re
@@ -13,6 +13,7 @@ import statistics
 from scipy import stats
 
 from conftest import ROOT, markdown_tables
+from test_targets_table import TABLE, subsections
 
 FIGURE = r"[−-]?\d[\d,]*(?:\.\d+)?"
 FIGURES = rf"{FIGURE}(?: ?%)?(?: / {FIGURE}(?: ?%)?)+"  # 1,431 / 2,443 / 1,853, or 89.9 / 93.4 %
@@ -157,14 +158,18 @@ def median_regrets(text: str) -> dict[str, list[tuple[str, str]]]:
     return found
 
 
+def targets_table() -> tuple[dict[str, str], list[list[str]]]:
+    """BENCHMARKS.md's subsections by title, and the rows of its table of the issue's targets."""
+    sections = subsections((ROOT / "BENCHMARKS.md").read_text())
+    rows = markdown_tables(sections[TABLE].split("\n\n- ", 1)[0])[0][2]
+    assert len(rows) >= 20, "fewer rows than the targets table has: is it still read?"
+    return sections, rows
+
+
 def test_the_targets_tables_regret_ratios_are_sacs_median_over_jirls():
     """Each row's two ratios, SAC / JIRL per step and in the episode form, are those of SAC's medians and one
     JIRL setting's, in the subsection the row names."""
-    from test_targets_table import TABLE, subsections
-
-    sections = subsections((ROOT / "BENCHMARKS.md").read_text())
-    targets = markdown_tables(sections[TABLE].split("\n\n- ", 1)[0])[0][2]
-    assert len(targets) == 20, "a row added or lost: count it here"
+    sections, targets = targets_table()
     for setting, episode_form, per_step, *_, title in targets:
         regrets = median_regrets(sections[title])
         if setting in SAC_ELSEWHERE:
@@ -173,3 +178,30 @@ def test_the_targets_tables_regret_ratios_are_sacs_median_over_jirls():
         pairs = list(itertools.product(regrets["SAC"], regrets["JIRL"]))
         given = [" and ".join(f"{value(s) / value(j):.2f}" for s, j in zip(sac, jirl)) for sac, jirl in pairs]
         assert any(all(map(is_ratio, stated, sac, jirl)) for sac, jirl in pairs), f"{setting!r}: {stated[0]}× per step and {stated[1]}× in the episode form, but {title!r} gives {given}"
+
+
+def test_the_targets_tables_return_percentages_are_jirls_median_against_sacs():
+    """Each percentage in a row's final-return cell, `JIRL / SAC / baseline: ...`, is JIRL's median as a share of
+    SAC's (`118 % of SAC's`) or, where returns are negative, JIRL's shortfall from SAC's as a share of it
+    (`8.0 % short`, `within 3.6 %`). The target's own 5 % is the one other percentage; 5 % below SAC's is
+    the figure that follows it."""
+    _, targets = targets_table()
+    checked = 0
+    for setting, _, _, returns, *_ in targets:
+        jirl, sac = figures(returns)[:2]
+        j, s, uj, us = value(jirl), value(sac), 0.5 * unit(jirl), 0.5 * unit(sac)  # u: half a unit, the rounding
+        if s > 0:
+            share = 100 * j / s
+            slack = share * (uj / abs(j) + us / s)
+        else:
+            share = 100 * abs(j - s) / abs(s)
+            slack = 100 * (uj + us) / abs(s) + share * us / abs(s)
+        for percent in re.findall(rf"({FIGURE}) %", returns):
+            if value(percent) == 5:
+                continue
+            assert abs(share - value(percent)) <= 0.5 * unit(percent) + slack + 1e-9, f"{setting!r}: {percent} % in {returns!r}, but {jirl} against {sac} is {share:.2f} %"
+            checked += 1
+        for threshold in re.findall(rf"5 % below SAC's is ({FIGURE})", returns):
+            assert abs(s - 0.05 * abs(s) - value(threshold)) <= 0.5 * unit(threshold) + 1.05 * us + 1e-9, f"{setting!r}: 5 % below {sac} is not {threshold}"
+            checked += 1
+    assert checked >= 13, "fewer percentages than the targets table gives: is the cell still read?"
