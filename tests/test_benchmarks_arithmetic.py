@@ -1,14 +1,16 @@
 """BENCHMARKS.md's summaries are arithmetic on figures it also prints: a median in parentheses after the
 figures it summarises, a table's median and mean ± 95 % CI rows under its seed rows, each seed's SAC / JIRL
-regret ratio, and the targets table's ratios of medians and shares of SAC's return. A seed measured again,
-or a summary typed by hand, must not leave them behind, so each is computed here again from the printed
-figures. Those are rounded: a median or a mean may differ from the computation by one unit of its last
-digit, a confidence interval by that or 1 % of itself, and a ratio or a share by half a unit plus what the
-rounding of the figures it divides allows."""
+regret ratio, and the targets table's ratios of medians, counts of seeds at 1/10 and shares of SAC's
+return. A seed measured again, or a summary typed by hand, must not leave them behind, so each is computed
+here again from the printed figures. Those are rounded: a median or a mean may differ from the computation
+by one unit of its last digit, a confidence interval by that or 1 % of itself, and a ratio or a share by
+half a unit plus what the rounding of the figures it divides allows."""
 
 import itertools
 import re
 import statistics
+
+from typing import NamedTuple
 
 from scipy import stats
 
@@ -20,6 +22,7 @@ FIGURES = rf"{FIGURE}(?: ?%)?(?: / {FIGURE}(?: ?%)?)+"  # 1,431 / 2,443 / 1,853,
 MEDIAN_AFTER = re.compile(rf"({FIGURES}) \(({FIGURE})(?: ?%)?\)")
 SEED = re.compile(r"\d+")
 MEAN_CI = "mean ± 95 % CI"
+ONE_TENTH = re.compile(r"1/10 on (every seed|no seed|(\d+) of (\d+) seeds)")
 
 
 def value(figure: str) -> float:
@@ -132,29 +135,41 @@ SAC_ELSEWHERE = {
 }
 
 
-def median_regrets(text: str) -> dict[str, list[tuple[str, str]]]:
-    """The medians of regret that the tables in `text` give, per step and in the episode form, as printed:
-    {"SAC": [(per step, episode form), ...], "JIRL": [...]}. A table of seeds gives them in its median row
-    under `SAC regret per step` and `JIRL ... regret (episode form)`; a table of methods in a row per
-    method, as `a / b / c (median)` or `median (mean ± CI)`."""
-    found: dict[str, list[tuple[str, str]]] = {"SAC": [], "JIRL": []}
+class Regrets(NamedTuple):
+    """One setting's regret as a table prints it: medians per step and in the episode form, and each seed's,
+    where the table gives them."""
+
+    per_step: str
+    episode_form: str
+    seeds: list[tuple[str, str]] | None
+
+
+def stated_regrets(text: str) -> dict[str, list[Regrets]]:
+    """The regrets that the tables in `text` give, {"SAC": [...], "JIRL": [...]}. A table of seeds gives them
+    under `SAC regret per step` and `JIRL ... regret (episode form)`, the medians in its median row; a table
+    of methods in a row per method, as `a / b / c (median)` or `median (mean ± CI)`."""
+    found: dict[str, list[Regrets]] = {"SAC": [], "JIRL": []}
     for _, header, rows in markdown_tables(text):
         medians = [row for row in rows if row[0] == "median"]
+        seeds = [row for row in rows if SEED.fullmatch(row[0])]
         for method in found:
             columns = [i for form in ("regret per step", "regret (episode form)") for i, name in enumerate(header) if name.startswith(method) and name.endswith(form)]
             if medians and len(columns) == 2:
-                found[method].append((medians[0][columns[0]], medians[0][columns[1]]))
+                found[method].append(Regrets(medians[0][columns[0]], medians[0][columns[1]], [(seed[columns[0]], seed[columns[1]]) for seed in seeds]))
         step = [i for i, name in enumerate(header) if "regret per step" in name]
         episode = [i for i, name in enumerate(header) if "episode form" in name or "regret per episode" in name]
         if not (step and episode) or medians:
             continue
         for row in rows:
-            pair = []
-            for cell in (row[step[0]], row[episode[0]]):
-                summary = MEDIAN_AFTER.fullmatch(cell) or re.fullmatch(rf"()({FIGURE}) \({FIGURE} ± {FIGURE}\)", cell)
-                pair.append(summary.group(2) if summary else None)
-            if None not in pair:
-                found["SAC" if row[0].startswith("SAC") else "JIRL"].append((pair[0], pair[1]))
+            cells = (row[step[0]], row[episode[0]])
+            listed = [MEDIAN_AFTER.fullmatch(cell) for cell in cells]
+            alone = [re.fullmatch(rf"({FIGURE}) \({FIGURE} ± {FIGURE}\)", cell) for cell in cells]
+            method = "SAC" if row[0].startswith("SAC") else "JIRL"
+            if listed[0] and listed[1]:
+                by_seed = list(zip(figures(listed[0].group(1)), figures(listed[1].group(1)), strict=True))
+                found[method].append(Regrets(listed[0].group(2), listed[1].group(2), by_seed))
+            elif alone[0] and alone[1]:
+                found[method].append(Regrets(alone[0].group(1), alone[1].group(1), None))
     return found
 
 
@@ -166,18 +181,51 @@ def targets_table() -> tuple[dict[str, str], list[list[str]]]:
     return sections, rows
 
 
+def cited_regrets(sections: dict[str, str], setting: str, title: str) -> list[tuple[Regrets, Regrets]]:
+    """Each pair of SAC's regrets and one JIRL setting's that the subsection a targets row names gives."""
+    regrets = stated_regrets(sections[title])
+    if setting in SAC_ELSEWHERE:
+        regrets["SAC"] = stated_regrets(sections[SAC_ELSEWHERE[setting]])["SAC"]
+    return list(itertools.product(regrets["SAC"], regrets["JIRL"]))
+
+
 def test_the_targets_tables_regret_ratios_are_sacs_median_over_jirls():
     """Each row's two ratios, SAC / JIRL per step and in the episode form, are those of SAC's medians and one
     JIRL setting's, in the subsection the row names."""
     sections, targets = targets_table()
     for setting, episode_form, per_step, *_, title in targets:
-        regrets = median_regrets(sections[title])
-        if setting in SAC_ELSEWHERE:
-            regrets["SAC"] = median_regrets(sections[SAC_ELSEWHERE[setting]])["SAC"]
         stated = [figures(per_step)[0], figures(episode_form)[0]]
-        pairs = list(itertools.product(regrets["SAC"], regrets["JIRL"]))
-        given = [" and ".join(f"{value(s) / value(j):.2f}" for s, j in zip(sac, jirl)) for sac, jirl in pairs]
-        assert any(all(map(is_ratio, stated, sac, jirl)) for sac, jirl in pairs), f"{setting!r}: {stated[0]}× per step and {stated[1]}× in the episode form, but {title!r} gives {given}"
+        pairs = cited_regrets(sections, setting, title)
+        given = [" and ".join(f"{value(s) / value(j):.2f}" for s, j in zip(sac[:2], jirl[:2])) for sac, jirl in pairs]
+        assert any(all(map(is_ratio, stated, sac[:2], jirl[:2])) for sac, jirl in pairs), f"{setting!r}: {stated[0]}× per step and {stated[1]}× in the episode form, but {title!r} gives {given}"
+
+
+def test_the_targets_tables_seeds_at_one_tenth_are_counted_from_the_seeds():
+    """`(1/10 on 3 of 10 seeds)`, `on every seed`, `on no seed`: the seeds whose SAC / JIRL regret is 10 or more,
+    in the form of the cell, counted from the regrets seed by seed of the setting whose medians give the row's
+    ratios."""
+    sections, targets = targets_table()
+    checked = 0
+    for setting, episode_form, per_step, *_, title in targets:
+        stated = [figures(per_step)[0], figures(episode_form)[0]]
+        claims = [ONE_TENTH.search(cell) for cell in (per_step, episode_form)]
+        if not any(claims):
+            continue
+        pairs = [(sac, jirl) for sac, jirl in cited_regrets(sections, setting, title) if all(map(is_ratio, stated, sac[:2], jirl[:2])) and sac.seeds and jirl.seeds]
+        assert pairs, f"{setting!r} counts seeds at 1/10, but {title!r} gives its regrets seed by seed nowhere"
+        sac, jirl = pairs[0]
+        for form, claim in enumerate(claims):
+            if claim is None:
+                continue
+            ratios = [value(s[form]) / value(j[form]) for s, j in zip(sac.seeds, jirl.seeds, strict=True)]
+            if claim.group(2) is None:
+                count = len(ratios) if claim.group(1) == "every seed" else 0
+            else:
+                count = int(claim.group(2))
+            assert claim.group(3) in (None, str(len(ratios))), f"{setting!r}: {claim.group()}, but {title!r} gives {len(ratios)} seeds"
+            assert sum(ratio >= 10 for ratio in ratios) == count, f"{setting!r}: {claim.group()}, but the seeds' ratios are {[round(r, 2) for r in ratios]}"
+            checked += 1
+    assert checked >= 14, "fewer counts than the targets table gives: is the cell still read?"
 
 
 def test_the_targets_tables_return_percentages_are_jirls_median_against_sacs():
