@@ -1,10 +1,10 @@
 """BENCHMARKS.md's summaries are arithmetic on figures it also prints: a median in parentheses after the
 figures it summarises, a table's median and mean ± 95 % CI rows under its seed rows, each seed's SAC / JIRL
-regret ratio, and the targets table's ratios of medians, counts of seeds at 1/10 and shares of SAC's
-return. A seed measured again, or a summary typed by hand, must not leave them behind, so each is computed
-here again from the printed figures. Those are rounded: a median or a mean may differ from the computation
-by one unit of its last digit, a confidence interval by that or 1 % of itself, and a ratio or a share by
-half a unit plus what the rounding of the figures it divides allows."""
+regret ratio, and the targets table's ratios of medians, counts of seeds and shares of SAC's return. A
+seed measured again, or a summary typed by hand, must not leave them behind, so each is computed here
+again from the printed figures. Those are rounded: a median or a mean may differ from the computation by
+one unit of its last digit, a confidence interval by that or 1 % of itself, and a ratio or a share by half
+a unit plus what the rounding of the figures it divides allows."""
 
 import itertools
 import re
@@ -253,3 +253,31 @@ def test_the_targets_tables_return_percentages_are_jirls_median_against_sacs():
             assert abs(s - 0.05 * abs(s) - value(threshold)) <= 0.5 * unit(threshold) + 1.05 * us + 1e-9, f"{setting!r}: 5 % below {sac} is not {threshold}"
             checked += 1
     assert checked >= 13, "fewer percentages than the targets table gives: is the cell still read?"
+
+
+def test_the_targets_tables_seeds_above_the_baseline_and_within_5_percent_are_counted_from_the_seeds():
+    """`9 of 10 above the baseline` and `6 of 10 seeds within 5 %` in a row's final-return cell, counted from
+    the seed table whose median row gives the row's JIRL return, where its subsection has one: seeds whose
+    JIRL return is above their baseline's, and seeds whose JIRL return is at least their SAC's less 5 % of
+    it."""
+    sections, targets = targets_table()
+    checked = 0
+    for setting, _, _, returns, *_, title in targets:
+        claims = re.findall(r"(\d+) of (\d+) (?:seeds )?(above the baseline|above it|within 5 %)", returns)
+        seed_tables = []
+        for _, header, rows in markdown_tables(sections[title]):
+            columns = {name.split()[0]: i for i, name in enumerate(header) if name.endswith("eval return") or name == "baseline return"}
+            medians = [row for row in rows if row[0] == "median"]
+            if "JIRL" in columns and medians and medians[0][columns["JIRL"]] == figures(returns)[0]:
+                seed_tables.append((columns, [row for row in rows if SEED.fullmatch(row[0])]))
+        if not claims or not seed_tables:
+            continue
+        columns, seeds = seed_tables[0]
+        for count, of, what in claims:
+            if what == "within 5 %":
+                meeting = [value(seed[columns["JIRL"]]) >= value(seed[columns["SAC"]]) - 0.05 * abs(value(seed[columns["SAC"]])) for seed in seeds]
+            else:
+                meeting = [value(seed[columns["JIRL"]]) > value(seed[columns["baseline"]]) for seed in seeds]
+            assert (int(count), int(of)) == (sum(meeting), len(seeds)), f"{setting!r}: {count} of {of} {what}, but the seeds give {sum(meeting)} of {len(seeds)}"
+            checked += 1
+    assert checked >= 10, "fewer counts than the targets table gives: is the cell still read?"
