@@ -9,7 +9,6 @@ a unit plus what the rounding of the figures it divides allows."""
 import itertools
 import re
 import statistics
-
 from typing import NamedTuple
 
 from scipy import stats
@@ -65,7 +64,7 @@ def test_a_median_in_parentheses_is_the_median_of_the_figures_before_it():
         for row in rows:
             for name, cell in zip(header[1:], row[1:]):
                 summary = MEDIAN_AFTER.fullmatch(cell)
-                if summary is None or "median" not in name + row[0]:
+                if summary is None or "median" not in f"{name} {row[0]}":
                     continue
                 listed, stated = summary.groups()
                 median = statistics.median(value(f) for f in figures(listed))
@@ -136,11 +135,10 @@ SAC_ELSEWHERE = {
 
 
 class Regrets(NamedTuple):
-    """One setting's regret as a table prints it: medians per step and in the episode form, and each seed's,
-    where the table gives them."""
+    """One setting's regret as a table prints it, per step and in the episode form: its medians, and each
+    seed's where the table gives them."""
 
-    per_step: str
-    episode_form: str
+    medians: tuple[str, str]
     seeds: list[tuple[str, str]] | None
 
 
@@ -155,7 +153,7 @@ def stated_regrets(text: str) -> dict[str, list[Regrets]]:
         for method in found:
             columns = [i for form in ("regret per step", "regret (episode form)") for i, name in enumerate(header) if name.startswith(method) and name.endswith(form)]
             if medians and len(columns) == 2:
-                found[method].append(Regrets(medians[0][columns[0]], medians[0][columns[1]], [(seed[columns[0]], seed[columns[1]]) for seed in seeds]))
+                found[method].append(Regrets((medians[0][columns[0]], medians[0][columns[1]]), [(seed[columns[0]], seed[columns[1]]) for seed in seeds]))
         step = [i for i, name in enumerate(header) if "regret per step" in name]
         episode = [i for i, name in enumerate(header) if "episode form" in name or "regret per episode" in name]
         if not (step and episode) or medians:
@@ -167,9 +165,9 @@ def stated_regrets(text: str) -> dict[str, list[Regrets]]:
             method = "SAC" if row[0].startswith("SAC") else "JIRL"
             if listed[0] and listed[1]:
                 by_seed = list(zip(figures(listed[0].group(1)), figures(listed[1].group(1)), strict=True))
-                found[method].append(Regrets(listed[0].group(2), listed[1].group(2), by_seed))
+                found[method].append(Regrets((listed[0].group(2), listed[1].group(2)), by_seed))
             elif alone[0] and alone[1]:
-                found[method].append(Regrets(alone[0].group(1), alone[1].group(1), None))
+                found[method].append(Regrets((alone[0].group(1), alone[1].group(1)), None))
     return found
 
 
@@ -196,8 +194,8 @@ def test_the_targets_tables_regret_ratios_are_sacs_median_over_jirls():
     for setting, episode_form, per_step, *_, title in targets:
         stated = [figures(per_step)[0], figures(episode_form)[0]]
         pairs = cited_regrets(sections, setting, title)
-        given = [" and ".join(f"{value(s) / value(j):.2f}" for s, j in zip(sac[:2], jirl[:2])) for sac, jirl in pairs]
-        assert any(all(map(is_ratio, stated, sac[:2], jirl[:2])) for sac, jirl in pairs), f"{setting!r}: {stated[0]}× per step and {stated[1]}× in the episode form, but {title!r} gives {given}"
+        given = [" and ".join(f"{value(s) / value(j):.2f}" for s, j in zip(sac.medians, jirl.medians)) for sac, jirl in pairs]
+        assert any(all(map(is_ratio, stated, sac.medians, jirl.medians)) for sac, jirl in pairs), f"{setting!r}: {stated[0]}× per step and {stated[1]}× in the episode form, but {title!r} gives {given}"
 
 
 def test_the_targets_tables_seeds_at_one_tenth_are_counted_from_the_seeds():
@@ -211,7 +209,7 @@ def test_the_targets_tables_seeds_at_one_tenth_are_counted_from_the_seeds():
         claims = [ONE_TENTH.search(cell) for cell in (per_step, episode_form)]
         if not any(claims):
             continue
-        pairs = [(sac, jirl) for sac, jirl in cited_regrets(sections, setting, title) if all(map(is_ratio, stated, sac[:2], jirl[:2])) and sac.seeds and jirl.seeds]
+        pairs = [(sac, jirl) for sac, jirl in cited_regrets(sections, setting, title) if all(map(is_ratio, stated, sac.medians, jirl.medians)) and sac.seeds and jirl.seeds]
         assert pairs, f"{setting!r} counts seeds at 1/10, but {title!r} gives its regrets seed by seed nowhere"
         sac, jirl = pairs[0]
         for form, claim in enumerate(claims):
@@ -264,13 +262,15 @@ def test_the_targets_tables_seeds_above_the_baseline_and_within_5_percent_are_co
     checked = 0
     for setting, _, _, returns, *_, title in targets:
         claims = re.findall(r"(\d+) of (\d+) (?:seeds )?(above the baseline|above it|within 5 %)", returns)
+        if not claims:
+            continue
         seed_tables = []
         for _, header, rows in markdown_tables(sections[title]):
             columns = {name.split()[0]: i for i, name in enumerate(header) if name.endswith("eval return") or name == "baseline return"}
             medians = [row for row in rows if row[0] == "median"]
             if "JIRL" in columns and medians and medians[0][columns["JIRL"]] == figures(returns)[0]:
                 seed_tables.append((columns, [row for row in rows if SEED.fullmatch(row[0])]))
-        if not claims or not seed_tables:
+        if not seed_tables:
             continue
         columns, seeds = seed_tables[0]
         for count, of, what in claims:
