@@ -41,11 +41,16 @@ def readme_section(heading: str) -> str:
     return re.split(rf"\n#{{1,{level}}} ", text, maxsplit=1)[0]
 
 
+def figure_value(figure: str) -> float:
+    """A number as the documents print it: `2,000`, `10k` and `−10` (with a minus sign) read as numbers."""
+    return float(figure.replace(",", "").replace("−", "-").replace("k", "e3"))
+
+
 def figures_stated(text: str, pattern: str) -> list[tuple[float, ...]]:
     """The numbers that each match of `pattern` captures in a document's `text`, its lines joined by single
-    spaces (`2,000`, `10k` and `−10` read as numbers); the document must still say it."""
+    spaces (read by `figure_value`); the document must still say it."""
     flat = " ".join(text.split())
-    matches = [tuple(float(g.replace(",", "").replace("−", "-").replace("k", "e3")) for g in m.groups()) for m in re.finditer(pattern, flat)]
+    matches = [tuple(figure_value(g) for g in m.groups()) for m in re.finditer(pattern, flat)]
     assert matches, f"the document no longer says {pattern!r}"
     return matches
 

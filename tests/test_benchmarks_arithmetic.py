@@ -13,7 +13,7 @@ from typing import NamedTuple
 
 from scipy import stats
 
-from conftest import ROOT, markdown_tables
+from conftest import ROOT, figure_value, markdown_tables
 from test_targets_table import TABLE, subsections
 
 FIGURE = r"[−-]?\d[\d,]*(?:\.\d+)?"
@@ -22,10 +22,6 @@ MEDIAN_AFTER = re.compile(rf"({FIGURES}) \(({FIGURE})(?: ?%)?\)")
 SEED = re.compile(r"\d+")
 MEAN_CI = "mean ± 95 % CI"
 ONE_TENTH = re.compile(r"1/10 on (every seed|no seed|(\d+) of (\d+) seeds)")
-
-
-def value(figure: str) -> float:
-    return float(figure.replace(",", "").replace("−", "-"))
 
 
 def unit(figure: str) -> float:
@@ -40,9 +36,9 @@ def figures(text: str) -> list[str]:
 def is_ratio(stated: str, sac: str, jirl: str) -> bool:
     """A printed ratio is SAC's printed regret over JIRL's, within half a unit of its last digit and what the
     rounding of the two regrets allows."""
-    quotient = value(sac) / value(jirl)
-    slack = quotient * (0.5 * unit(sac) / value(sac) + 0.5 * unit(jirl) / (value(jirl) - 0.5 * unit(jirl)))
-    return abs(quotient - value(stated)) <= 0.5 * unit(stated) + slack + 1e-9
+    quotient = figure_value(sac) / figure_value(jirl)
+    slack = quotient * (0.5 * unit(sac) / figure_value(sac) + 0.5 * unit(jirl) / (figure_value(jirl) - 0.5 * unit(jirl)))
+    return abs(quotient - figure_value(stated)) <= 0.5 * unit(stated) + slack + 1e-9
 
 
 def tables() -> list[tuple[int, list[str], list[list[str]]]]:
@@ -51,7 +47,7 @@ def tables() -> list[tuple[int, list[str], list[list[str]]]]:
 
 def test_the_helpers_read_figures_as_printed():
     assert figures("−259.3 / 1,342.7 (5 %)") == ["−259.3", "1,342.7", "5"]
-    assert [value("−1,342.7"), unit("−1,342.7"), unit("2,567")] == [-1342.7, 0.1, 1.0]
+    assert [figure_value("−1,342.7"), unit("−1,342.7"), unit("2,567")] == [-1342.7, 0.1, 1.0]
     assert MEDIAN_AFTER.fullmatch("89.9 / 93.4 % (91.6 %)").groups() == ("89.9 / 93.4 %", "91.6")
     assert MEDIAN_AFTER.fullmatch("2.6× / 4.6× (3.3×)") is None  # a ratio of medians (that table says so)
 
@@ -67,8 +63,8 @@ def test_a_median_in_parentheses_is_the_median_of_the_figures_before_it():
                 if summary is None or "median" not in f"{name} {row[0]}":
                     continue
                 listed, stated = summary.groups()
-                median = statistics.median(value(f) for f in figures(listed))
-                assert abs(median - value(stated)) <= unit(stated) + 1e-9, f"table at line {line}, {row[0]!r}, {name!r}: {cell} has median {median:g}"
+                median = statistics.median(figure_value(f) for f in figures(listed))
+                assert abs(median - figure_value(stated)) <= unit(stated) + 1e-9, f"table at line {line}, {row[0]!r}, {name!r}: {cell} has median {median:g}"
                 checked += 1
     assert checked >= 101, "fewer medians than BENCHMARKS.md states: is the pattern still read?"
 
@@ -92,14 +88,14 @@ def test_median_and_mean_rows_summarise_the_seed_rows():
                     stated = figures(cell)
                     assert all(len(part) == len(stated) for part in parts), f"{where}: {cell} does not summarise {[s[column] for s in seeds]}"
                     for i, figure in enumerate(stated):
-                        median = statistics.median(value(part[i]) for part in parts)
-                        assert abs(median - value(figure)) <= unit(figure) + 1e-9, f"{where}: {cell}, but the median is {median:g}"
+                        median = statistics.median(figure_value(part[i]) for part in parts)
+                        assert abs(median - figure_value(figure)) <= unit(figure) + 1e-9, f"{where}: {cell}, but the median is {median:g}"
                 else:
                     mean, half = figures(cell)
-                    column_values = [value(part[0]) for part in parts]
+                    column_values = [figure_value(part[0]) for part in parts]
                     computed_half = stats.t.ppf(0.975, len(seeds) - 1) * statistics.stdev(column_values) / len(seeds) ** 0.5
-                    assert abs(statistics.fmean(column_values) - value(mean)) <= unit(mean) + 1e-9, f"{where}: {cell}, but the mean is {statistics.fmean(column_values):g}"
-                    assert abs(computed_half - value(half)) <= max(unit(half), 0.01 * computed_half) + 1e-9, f"{where}: {cell}, but the half-width is {computed_half:g}"
+                    assert abs(statistics.fmean(column_values) - figure_value(mean)) <= unit(mean) + 1e-9, f"{where}: {cell}, but the mean is {statistics.fmean(column_values):g}"
+                    assert abs(computed_half - figure_value(half)) <= max(unit(half), 0.01 * computed_half) + 1e-9, f"{where}: {cell}, but the half-width is {computed_half:g}"
                 checked += 1
     assert checked >= 149, "fewer summaries than BENCHMARKS.md states: is its seed tables' shape still read?"
 
@@ -123,7 +119,7 @@ def test_each_seeds_ratio_is_sacs_regret_over_jirls():
                 continue
             for form, stated in zip(("regret per step", "regret (episode form)"), figures(row[ratio[0]]), strict=True):
                 sac, jirl = row[regrets["SAC", form]], row[regrets["JIRL", form]]
-                assert is_ratio(stated, sac, jirl), f"table at line {line}, seed {row[0]}, {form}: {stated}, but {sac} / {jirl} is {value(sac) / value(jirl):.2f}"
+                assert is_ratio(stated, sac, jirl), f"table at line {line}, seed {row[0]}, {form}: {stated}, but {sac} / {jirl} is {figure_value(sac) / figure_value(jirl):.2f}"
                 checked += 1
     assert checked >= 140, "fewer ratios than BENCHMARKS.md states: are its tables' headers still read?"
 
@@ -194,7 +190,7 @@ def test_the_targets_tables_regret_ratios_are_sacs_median_over_jirls():
     for setting, episode_form, per_step, *_, title in targets:
         stated = [figures(per_step)[0], figures(episode_form)[0]]
         pairs = cited_regrets(sections, setting, title)
-        given = [" and ".join(f"{value(s) / value(j):.2f}" for s, j in zip(sac.medians, jirl.medians)) for sac, jirl in pairs]
+        given = [" and ".join(f"{figure_value(s) / figure_value(j):.2f}" for s, j in zip(sac.medians, jirl.medians)) for sac, jirl in pairs]
         assert any(all(map(is_ratio, stated, sac.medians, jirl.medians)) for sac, jirl in pairs), f"{setting!r}: {stated[0]}× per step and {stated[1]}× in the episode form, but {title!r} gives {given}"
 
 
@@ -215,7 +211,7 @@ def test_the_targets_tables_seeds_at_one_tenth_are_counted_from_the_seeds():
         for form, claim in enumerate(claims):
             if claim is None:
                 continue
-            ratios = [value(s[form]) / value(j[form]) for s, j in zip(sac.seeds, jirl.seeds, strict=True)]
+            ratios = [figure_value(s[form]) / figure_value(j[form]) for s, j in zip(sac.seeds, jirl.seeds, strict=True)]
             if claim.group(2) is None:
                 count = len(ratios) if claim.group(1) == "every seed" else 0
             else:
@@ -235,7 +231,7 @@ def test_the_targets_tables_return_percentages_are_jirls_median_against_sacs():
     checked = 0
     for setting, _, _, returns, *_ in targets:
         jirl, sac = figures(returns)[:2]
-        j, s, uj, us = value(jirl), value(sac), 0.5 * unit(jirl), 0.5 * unit(sac)  # u: half a unit, the rounding
+        j, s, uj, us = figure_value(jirl), figure_value(sac), 0.5 * unit(jirl), 0.5 * unit(sac)  # u: half a unit, the rounding
         if s > 0:
             share = 100 * j / s
             slack = share * (uj / abs(j) + us / s)
@@ -243,12 +239,12 @@ def test_the_targets_tables_return_percentages_are_jirls_median_against_sacs():
             share = 100 * abs(j - s) / abs(s)
             slack = 100 * (uj + us) / abs(s) + share * us / abs(s)
         for percent in re.findall(rf"({FIGURE}) %", returns):
-            if value(percent) == 5:
+            if figure_value(percent) == 5:
                 continue
-            assert abs(share - value(percent)) <= 0.5 * unit(percent) + slack + 1e-9, f"{setting!r}: {percent} % in {returns!r}, but {jirl} against {sac} is {share:.2f} %"
+            assert abs(share - figure_value(percent)) <= 0.5 * unit(percent) + slack + 1e-9, f"{setting!r}: {percent} % in {returns!r}, but {jirl} against {sac} is {share:.2f} %"
             checked += 1
         for threshold in re.findall(rf"5 % below SAC's is ({FIGURE})", returns):
-            assert abs(s - 0.05 * abs(s) - value(threshold)) <= 0.5 * unit(threshold) + 1.05 * us + 1e-9, f"{setting!r}: 5 % below {sac} is not {threshold}"
+            assert abs(s - 0.05 * abs(s) - figure_value(threshold)) <= 0.5 * unit(threshold) + 1.05 * us + 1e-9, f"{setting!r}: 5 % below {sac} is not {threshold}"
             checked += 1
     assert checked >= 13, "fewer percentages than the targets table gives: is the cell still read?"
 
@@ -275,9 +271,9 @@ def test_the_targets_tables_seeds_above_the_baseline_and_within_5_percent_are_co
         columns, seeds = seed_tables[0]
         for count, of, what in claims:
             if what == "within 5 %":
-                meeting = [value(seed[columns["JIRL"]]) >= value(seed[columns["SAC"]]) - 0.05 * abs(value(seed[columns["SAC"]])) for seed in seeds]
+                meeting = [figure_value(seed[columns["JIRL"]]) >= figure_value(seed[columns["SAC"]]) - 0.05 * abs(figure_value(seed[columns["SAC"]])) for seed in seeds]
             else:
-                meeting = [value(seed[columns["JIRL"]]) > value(seed[columns["baseline"]]) for seed in seeds]
+                meeting = [figure_value(seed[columns["JIRL"]]) > figure_value(seed[columns["baseline"]]) for seed in seeds]
             assert (int(count), int(of)) == (sum(meeting), len(seeds)), f"{setting!r}: {count} of {of} {what}, but the seeds give {sum(meeting)} of {len(seeds)}"
             checked += 1
     assert checked >= 10, "fewer counts than the targets table gives: is the cell still read?"

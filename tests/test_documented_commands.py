@@ -15,7 +15,7 @@ import subprocess
 import sys
 from collections.abc import Sequence
 
-from conftest import ROOT, figures_stated, load_script, readme_section
+from conftest import ROOT, figure_value, figures_stated, load_script, readme_section
 
 DOCUMENTS = ["README.md", "BENCHMARKS.md", *sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "docs").rglob("*.md"))]
 PROGRAMS = sorted(p.relative_to(ROOT).as_posix() for folder in (".", "benchmarks", "envs", "deploy") for p in (ROOT / folder).glob("*.py"))
@@ -143,7 +143,7 @@ def test_the_readmes_option_tables_give_each_scripts_defaults():
                 if text in ("on", "off"):
                     assert value is (text == "on"), (flag, text, value)
                 elif re.fullmatch(r"[−-]?[\d.]+(e-?\d+)?", text):
-                    assert float(text.replace("−", "-")) == value, (flag, text, value)
+                    assert figure_value(text) == value, (flag, text, value)
                 elif re.fullmatch(r"`[^`]+`", text):
                     assert text.strip("`") == value, (flag, text, value)
                 else:  # in words: the env's own, your default entity, half of `--total-timesteps`
