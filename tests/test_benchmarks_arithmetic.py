@@ -14,7 +14,7 @@ from typing import NamedTuple
 from scipy import stats
 
 from conftest import ROOT, figure_value, markdown_tables
-from test_targets_table import TABLE, subsections
+from test_targets_table import targets_table
 
 FIGURE = r"[−-]?\d[\d,]*(?:\.\d+)?"
 FIGURES = rf"{FIGURE}(?: ?%)?(?: / {FIGURE}(?: ?%)?)+"  # 1,431 / 2,443 / 1,853, or 89.9 / 93.4 %
@@ -165,14 +165,6 @@ def stated_regrets(text: str) -> dict[str, list[Regrets]]:
             elif alone[0] and alone[1]:
                 found[method].append(Regrets((alone[0].group(1), alone[1].group(1)), None))
     return found
-
-
-def targets_table() -> tuple[dict[str, str], list[list[str]]]:
-    """BENCHMARKS.md's subsections by title, and the rows of its table of the issue's targets."""
-    sections = subsections((ROOT / "BENCHMARKS.md").read_text())
-    rows = markdown_tables(sections[TABLE].split("\n\n- ", 1)[0])[0][2]
-    assert len(rows) >= 20, "fewer rows than the targets table has: is it still read?"
-    return sections, rows
 
 
 def cited_regrets(sections: dict[str, str], setting: str, title: str) -> list[tuple[Regrets, Regrets]]:

@@ -5,7 +5,7 @@ README's table of starting points repeats rows of it, and is checked against it 
 
 import re
 
-from conftest import ROOT, table_cells
+from conftest import ROOT, markdown_tables, table_cells
 
 NUMBER = re.compile(r"\d[\d,]*(?:\.\d+)?")  # signs and units aside: −259.3 reads 259.3, 1,342.7 reads 1342.7
 TABLE = "The issue's targets at a glance"
@@ -25,13 +25,18 @@ def test_numbers_read_as_the_table_writes_them():
     assert numbers("−259.3 / 1,342.7 at 147k–155k (1/10 on 3 of 10 seeds)") == {"259.3", "1342.7", "147", "155", "1", "10", "3"}
 
 
-def test_every_figure_of_the_targets_table_is_stated_where_it_says():
+def targets_table() -> tuple[dict[str, str], list[list[str]]]:
+    """BENCHMARKS.md's subsections by title, and the cells of each row of its table of the issue's targets."""
     sections = subsections((ROOT / "BENCHMARKS.md").read_text())
-    table, notes = sections[TABLE].split("\n\n- ", 1)
-    rows = [line for line in table.splitlines() if line.startswith("| ") and not line.startswith("| setting")]
+    rows = markdown_tables(sections[TABLE].split("\n\n- ", 1)[0])[0][2]
     assert len(rows) == 20, "a row added or lost: count it here"
-    for row in rows:
-        *cells, title = table_cells(row)
+    return sections, rows
+
+
+def test_every_figure_of_the_targets_table_is_stated_where_it_says():
+    sections, rows = targets_table()
+    table, notes = sections[TABLE].split("\n\n- ", 1)
+    for *cells, title in rows:
         assert title in sections, f"the row {cells[0]!r} names no subsection: {title!r}"
         missing = numbers(" ".join(cells)) - numbers(sections[title])
         assert not missing, f"the row {cells[0]!r} says {sorted(missing)}, which {title!r} does not"
@@ -55,8 +60,7 @@ def test_the_readmes_starting_points_are_rows_of_the_targets_table_and_parse():
     readme = (ROOT / "README.md").read_text()
     start = readme.index("| env |", readme.index("**Where to start.**"))
     table = readme[start : readme.index("\n\n", start)]
-    targets = subsections((ROOT / "BENCHMARKS.md").read_text())[TABLE].split("\n\n- ", 1)[0]
-    target_rows = [table_cells(line) for line in targets.splitlines() if line.startswith("| ") and not line.startswith("| setting")]
+    _, target_rows = targets_table()
     rows = [table_cells(line) for line in table.splitlines()[2:]]
     assert [row[0].split(",")[0] for row in rows] == ["Pendulum-v1"] * 3 + ["LunarLanderContinuous-v3"] * 2 + ["JetRacerTrack-v0", "Walker2DBulletEnv-v0", "your own env"]
     commands = []
