@@ -25,7 +25,7 @@ from typing import Optional
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from learning import read_scalars  # noqa: E402
-from paper_window import Series, first_full_control, runs_by_seed  # noqa: E402
+from paper_window import Series, first_full_control, newest_runs  # noqa: E402
 
 TAGS = ("gate/c", "charts/rl_control_fraction")
 
@@ -66,13 +66,8 @@ def main(argv: Optional[list[str]] = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("workdirs", type=Path, nargs="+", help="workdirs of the JIRL runs (benchmarks/learning.py --workdir)")
     args = parser.parse_args(argv)
-    runs: dict[int, Path] = {}
-    for workdir in args.workdirs:  # a seed in two workdirs: the newest run, as within one
-        for seed, run in runs_by_seed(workdir, "handover").items():
-            if seed not in runs or run.stat().st_mtime > runs[seed].stat().st_mtime:
-                runs[seed] = run
     rows = {}
-    for seed, run in runs.items():
+    for seed, run in newest_runs(args.workdirs, "handover").items():
         scalars = read_scalars(run)
         missing = [tag for tag in TAGS if not scalars.get(tag)]
         if missing:

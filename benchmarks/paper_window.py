@@ -138,6 +138,16 @@ def runs_by_seed(workdir: Path, tool: str = "paper_window") -> dict[int, Path]:
     return runs
 
 
+def newest_runs(workdirs: Iterable[Path], tool: str) -> dict[int, Path]:
+    """The newest run of each seed across workdirs: a seed in two workdirs counts as one seeded twice in one."""
+    runs: dict[int, Path] = {}
+    for workdir in workdirs:
+        for seed, run in runs_by_seed(workdir, tool).items():
+            if seed not in runs or run.stat().st_mtime > runs[seed].stat().st_mtime:
+                runs[seed] = run
+    return runs
+
+
 def ratio(sac: float, jirl: float) -> str:
     return f"{sac / jirl:.1f}×" if jirl > 0 else "∞"
 
