@@ -26,22 +26,16 @@ from typing import Optional
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from learning import read_scalars  # noqa: E402
-from paper_window import Series, newest_runs  # noqa: E402
+from paper_window import Series, newest_runs, value_at  # noqa: E402
 
 MEDIANS = ["charts/rl_control_fraction", "losses/qf1_values", "losses/alpha"]
 TOTALS = ["charts/baseline_regret", "charts/baseline_regret_per_step"]
 
 
 def window_median(series: Series, start: int, end: int) -> Optional[float]:
-    """The median of the values logged at steps in [start, end); None where none was."""
-    values = [value for step, value in series if start <= step < end]
-    return statistics.median(values) if values else None
-
-
-def total_before(series: Series, step: int) -> float:
-    """The running total's last value logged before `step` (series sorted by step); 0 before its first point."""
-    i = bisect.bisect_left([s for s, _ in series], step)
-    return series[i - 1][1] if i else 0.0
+    """The median of the values logged at steps in [start, end) (series sorted by step); None where none was."""
+    first, stop = (bisect.bisect_left(series, step, key=lambda point: point[0]) for step in (start, end))
+    return statistics.median(value for _, value in series[first:stop]) if stop > first else None
 
 
 @dataclass
@@ -60,7 +54,8 @@ def windows(scalars: dict[str, Series], medians: list[str], totals: list[str], w
         Row(
             start,
             [window_median(scalars[tag], start, start + window) for tag in medians],
-            [total_before(scalars[tag], start + window) - total_before(scalars[tag], start) for tag in totals],
+            # steps are integers: the last value logged before step n is the last at or before n - 1
+            [value_at(scalars[tag], start + window - 1) - value_at(scalars[tag], start - 1) for tag in totals],
         )
         for start in range(0, last + 1, window)
     ]
