@@ -4,6 +4,7 @@ import os
 import sys
 import time
 
+import numpy as np
 import pytest
 
 from conftest import ROOT
@@ -69,3 +70,17 @@ def test_the_command_refuses_what_it_cannot_read(tmp_path, capsys):
         with pytest.raises(SystemExit):
             log_windows.main([str(tmp_path), *bad])
         assert said in capsys.readouterr().err
+
+
+def test_window_medians_and_growths_agree_with_numpy_on_uneven_steps():
+    rng = np.random.default_rng(0)
+    steps = np.sort(rng.choice(10_000, size=700, replace=False))
+    values = rng.random(700)
+    series = [(int(s), float(v)) for s, v in zip(steps, values)]
+    totals = [(int(s), float(v)) for s, v in zip(steps, np.cumsum(values))]
+    rows = log_windows.windows({"v": series, "t": totals}, ["v"], ["t"], 1_000)
+    assert len(rows) == 10
+    for row in rows:
+        inside = (steps >= row.start) & (steps < row.start + 1_000)
+        assert row.medians[0] == pytest.approx(np.median(values[inside]))
+        assert row.growths[0] == pytest.approx(values[inside].sum())  # a running total grows by what was added in the window
